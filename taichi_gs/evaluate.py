@@ -1,0 +1,134 @@
+"""Metrics: trajectory errors with evo's definitions, and image/depth quality against ground truth.
+
+- ATE: RMSE of position differences after aligning the estimate to the reference with a rigid
+  SE(3) Umeyama fit (``evo_ape tum REF EST -a``), metres.
+- RPE: for consecutive frames i, i+1, E = (Q_i^-1 Q_{i+1})^-1 (P_i^-1 P_{i+1}) with Q the reference
+  and P the estimate; translation error |t(E)| in metres and rotation angle of R(E) in degrees,
+  reported as RMSE over pairs (``evo_rpe tum REF EST --delta 1 -r trans_part|angle_deg``).
+- PSNR, SSIM (Gaussian window sigma 1.5, data range 1, as the 3DGS papers compute it), and RMSE of
+  inverse depth (1/m) over pixels where both depths are valid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from skimage.metrics import structural_similarity
+
+from .geometry import invert
+
+EVO_MAX_TIME_DIFFERENCE = 0.01  # seconds, evo's default for associating trajectories
+
+
+@dataclass(frozen=True)
+class TrajectoryErrors:
+    """ATE and RPE of an estimate against a reference (evo's definitions, RMSE statistics)."""
+
+    ate_m: float
+    rpe_trans_m: float
+    rpe_rot_deg: float
+    frames: int
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {"ate_m": self.ate_m, "rpe_trans_m": self.rpe_trans_m, "rpe_rot_deg": self.rpe_rot_deg, "frames": self.frames}
+
+
+def umeyama_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and translation t minimising sum |R source_i + t - target_i|^2 (no scale)."""
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    cov = (target - mu_t).T @ (source - mu_s) / len(source)
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    return R, mu_t - R @ mu_s
+
+
+def align_trajectory(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Estimated poses (N x 4 x 4) moved rigidly onto the reference by Umeyama on positions."""
+    R, t = umeyama_alignment(est[:, :3, 3], ref[:, :3, 3])
+    A = np.eye(4)
+    A[:3, :3], A[:3, 3] = R, t
+    return A @ est
+
+
+def ate(est: np.ndarray, ref: np.ndarray) -> float:
+    """Absolute trajectory error (m): RMSE of positions after rigid alignment."""
+    est, ref = _finite_pairs(est, ref)
+    if len(est) < 3:
+        return float("nan")
+    aligned = align_trajectory(est, ref)
+    errors = np.linalg.norm(aligned[:, :3, 3] - ref[:, :3, 3], axis=1)
+    return float(np.sqrt(np.mean(errors**2)))
+
+
+def rpe(est: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
+    """Relative pose error over consecutive frames: (translation RMSE m, rotation RMSE deg)."""
+    trans, rot = [], []
+    for i in range(len(est) - 1):
+        pair = (est[i], est[i + 1], ref[i], ref[i + 1])
+        if not all(np.all(np.isfinite(T)) for T in pair):
+            continue
+        E = invert(invert(ref[i]) @ ref[i + 1]) @ (invert(est[i]) @ est[i + 1])
+        trans.append(np.linalg.norm(E[:3, 3]))
+        rot.append(rotation_angle_deg(E[:3, :3]))
+    if not trans:
+        return float("nan"), float("nan")
+    return float(np.sqrt(np.mean(np.square(trans)))), float(np.sqrt(np.mean(np.square(rot))))
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Rotation angle of a rotation matrix in degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def trajectory_errors(est: np.ndarray, ref: np.ndarray) -> TrajectoryErrors:
+    """ATE and RPE of matched pose lists (frames whose reference is NaN are skipped)."""
+    if est.shape != ref.shape:
+        raise ValueError(f"estimate has shape {est.shape}, reference {ref.shape}")
+    trans, rot = rpe(est, ref)
+    frames = len(_finite_pairs(est, ref)[0])
+    return TrajectoryErrors(ate(est, ref), trans, rot, frames)
+
+
+def match_by_time(t_est: np.ndarray, t_ref: np.ndarray, max_difference: float = EVO_MAX_TIME_DIFFERENCE) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (est, ref) of nearest timestamps within ``max_difference``, each used once (evo's rule)."""
+    est_idx, ref_idx = [], []
+    used = set()
+    for i, t in enumerate(t_est):
+        j = int(np.argmin(np.abs(t_ref - t)))
+        if abs(t_ref[j] - t) <= max_difference and j not in used:
+            used.add(j)
+            est_idx.append(i)
+            ref_idx.append(j)
+    return np.array(est_idx, dtype=int), np.array(ref_idx, dtype=int)
+
+
+def _finite_pairs(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    keep = np.all(np.isfinite(ref.reshape(len(ref), -1)), axis=1) & np.all(np.isfinite(est.reshape(len(est), -1)), axis=1)
+    return est[keep], ref[keep]
+
+
+def psnr(image: np.ndarray, reference: np.ndarray) -> float:
+    """Peak signal-to-noise ratio (dB) of images in [0, 1]."""
+    mse = float(np.mean((np.clip(image, 0, 1).astype(np.float64) - reference.astype(np.float64)) ** 2))
+    return float("inf") if mse == 0 else float(-10.0 * np.log10(mse))
+
+
+def ssim(image: np.ndarray, reference: np.ndarray) -> float:
+    """SSIM with an 11x11 Gaussian window (sigma 1.5), data range 1, mean over channels."""
+    return float(structural_similarity(
+        np.clip(image, 0, 1).astype(np.float64), reference.astype(np.float64),
+        gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=2,
+    ))
+
+
+def inverse_depth_rmse(depth: np.ndarray, reference: np.ndarray) -> float:
+    """RMSE of 1/depth (1/m) over pixels where both depths are positive."""
+    valid = (depth > 0) & (reference > 0)
+    if not np.any(valid):
+        return float("nan")
+    diff = 1.0 / depth[valid].astype(np.float64) - 1.0 / reference[valid].astype(np.float64)
+    return float(np.sqrt(np.mean(diff**2)))

@@ -1,0 +1,181 @@
+"""Rigid-body maths in NumPy: SO(3)/SE(3) exp and log, quaternions, interpolation, projection.
+
+Conventions used everywhere in taichi-gs:
+- A pose is a camera-to-world 4x4 matrix with OpenCV camera axes (x right, y down, z forward).
+- A twist is a 6-vector ``[rho, phi]``: translation part first, rotation part second.
+- Quaternions are ``[w, x, y, z]`` inside the package; TUM files use ``qx qy qz qw`` and are
+  converted in :mod:`taichi_gs.io` only.
+- Pose perturbations are left-multiplied: ``T' = se3_exp(delta) @ T``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL = 1e-10
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Return the 3x3 cross-product matrix of a 3-vector."""
+    x, y, z = v
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def so3_exp(phi: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the axis-angle vector ``phi`` (Rodrigues)."""
+    phi = np.asarray(phi, dtype=np.float64)
+    theta = np.linalg.norm(phi)
+    K = skew(phi)
+    if theta < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    a = np.sin(theta) / theta
+    b = (1.0 - np.cos(theta)) / theta**2
+    return np.eye(3) + a * K + b * K @ K
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector of a rotation matrix, robust near 0 and pi."""
+    R = np.asarray(R, dtype=np.float64)
+    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos_theta)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-6:
+        return 0.5 * w
+    if np.pi - theta < 1e-4:
+        # Near pi: take the axis from the symmetric part, sign from w.
+        B = 0.5 * (R + np.eye(3))
+        axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
+        i = int(np.argmax(axis))
+        axis = B[i] / max(axis[i], _SMALL)
+        axis /= np.linalg.norm(axis)
+        if np.dot(axis, w) < 0:
+            axis = -axis
+        return theta * axis
+    return theta / (2.0 * np.sin(theta)) * w
+
+
+def _left_jacobian(phi: np.ndarray) -> np.ndarray:
+    theta = np.linalg.norm(phi)
+    K = skew(phi)
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * K + K @ K / 6.0
+    return (
+        np.eye(3)
+        + (1.0 - np.cos(theta)) / theta**2 * K
+        + (theta - np.sin(theta)) / theta**3 * K @ K
+    )
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """4x4 rigid transform of the twist ``xi = [rho, phi]``."""
+    xi = np.asarray(xi, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(xi[3:])
+    T[:3, 3] = _left_jacobian(xi[3:]) @ xi[:3]
+    return T
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """Twist ``[rho, phi]`` of a 4x4 rigid transform (inverse of :func:`se3_exp`)."""
+    phi = so3_log(T[:3, :3])
+    rho = np.linalg.solve(_left_jacobian(phi), T[:3, 3])
+    return np.concatenate([rho, phi])
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    Ti = np.eye(4)
+    R = T[:3, :3]
+    Ti[:3, :3] = R.T
+    Ti[:3, 3] = -R.T @ T[:3, 3]
+    return Ti
+
+
+def interpolate(T_a: np.ndarray, T_b: np.ndarray, tau: float) -> np.ndarray:
+    """Geodesic SE(3) interpolation: ``T_a`` at tau=0, ``T_b`` at tau=1."""
+    return T_a @ se3_exp(tau * se3_log(invert(T_a) @ T_b))
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a quaternion ``[w, x, y, z]`` (normalised first)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``[w, x, y, z]`` with w >= 0 of a rotation matrix (Shepperd)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def pose_from_rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 transform from a rotation matrix and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """3x3 pinhole matrix."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def backproject(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-space points (H x W x 3) of a depth map; pixel centres at integer coordinates.
+
+    Pixel (u, v) of the image array sits at image coordinate (u, v), the OpenCV convention; the
+    rasterizer's +0.5 pixel-centre convention applies to its own screen space only.
+    """
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    z = depth.astype(np.float64)
+    x = (u - K[0, 2]) / K[0, 0] * z
+    y = (v - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], axis=-1)
+
+
+def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (... x 2) of camera-space points (... x 3)."""
+    z = points[..., 2]
+    u = K[0, 0] * points[..., 0] / z + K[0, 2]
+    v = K[1, 1] * points[..., 1] / z + K[1, 2]
+    return np.stack([u, v], axis=-1)
+
+
+def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to points of shape (..., 3)."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def raster_intrinsics(K: np.ndarray) -> np.ndarray:
+    """Intrinsics for the rasterizer, whose pixel centres sit at +0.5 (gsplat's convention).
+
+    Data intrinsics follow OpenCV (pixel index u samples image coordinate u); the rasterizer samples
+    pixel u at u + 0.5, so the principal point moves by half a pixel.
+    """
+    K = np.array(K, dtype=np.float64)
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+    return K

@@ -1,0 +1,427 @@
+"""RGB-D sequences read lazily, frame by frame, from the TUM layout or taichi-gs's own layout.
+
+Own layout (written by ``taichi-gs synth``)::
+
+    SEQ/intrinsics.json   {"width", "height", "fx", "fy", "cx", "cy", "depth_scale"}
+    SEQ/frames.txt        "timestamp rgb/NAME.png depth/NAME.png" per frame
+    SEQ/groundtruth.txt   optional TUM trajectory (camera-to-world), matched to frames by time
+    SEQ/exposure.txt      optional "timestamp" + start and end pose (tx ty tz qx qy qz qw each)
+    SEQ/sharp/NAME.png    optional sharp mid-exposure colour, same stem as the rgb file
+
+TUM layout: ``rgb.txt`` and ``depth.txt`` ("timestamp filename"), optional ``groundtruth.txt``;
+colour and depth associated by nearest timestamp as TUM's associate.py does.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import intrinsics_matrix, pose_from_rt, quat_to_rotmat, rotmat_to_quat
+from .trajectory import read_tum_rows, tum_rows_to_poses
+
+MAX_TIME_DIFFERENCE = 0.02  # seconds, TUM associate.py's default
+MEDIAN_DEPTH_RANGE = (0.1, 100.0)  # metres: outside it the depth scale is surely wrong
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics (OpenCV pixel convention) and the depth PNG scale (units per metre)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    depth_scale: float = 5000.0
+
+    def K(self) -> np.ndarray:
+        """3x3 intrinsics matrix."""
+        return intrinsics_matrix(self.fx, self.fy, self.cx, self.cy)
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2) + "\n"
+
+
+@dataclass(frozen=True)
+class IntrinsicsOverride:
+    """Values given on the command line; each one set wins over intrinsics.json."""
+
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    depth_scale: float | None = None
+
+    def values(self) -> dict[str, float]:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+class Sequence:
+    """An RGB-D sequence whose frames are read on demand.
+
+    Attributes: ``root``, ``layout`` ("tum" or "taichi-gs"), ``intrinsics``, ``timestamps`` (N,),
+    ``rgb_paths``, ``depth_paths``, ``names`` (colour file stems), ``gt_poses`` (N x 4 x 4
+    camera-to-world, NaN where ground truth does not cover a frame, or None), ``exposure_poses``
+    (N x 2 x 4 x 4 start/end, or None) and ``sharp_paths`` (or None).
+    """
+
+    def __init__(
+        self,
+        root: Path,
+        layout: str,
+        intrinsics: Intrinsics,
+        timestamps: np.ndarray,
+        rgb_paths: list[Path],
+        depth_paths: list[Path],
+        gt_poses: np.ndarray | None = None,
+        exposure_poses: np.ndarray | None = None,
+        sharp_paths: list[Path] | None = None,
+    ):
+        self.root = root
+        self.layout = layout
+        self.intrinsics = intrinsics
+        self.timestamps = timestamps
+        self.rgb_paths = rgb_paths
+        self.depth_paths = depth_paths
+        self.names = [p.stem for p in rgb_paths]
+        self.gt_poses = gt_poses
+        self.exposure_poses = exposure_poses
+        self.sharp_paths = sharp_paths
+
+    def __len__(self) -> int:
+        return len(self.rgb_paths)
+
+    def K(self) -> np.ndarray:
+        return self.intrinsics.K()
+
+    def color(self, i: int) -> np.ndarray:
+        """Blurred colour of frame i, float32 H x W x 3 in [0, 1]."""
+        return self._checked_color(self.rgb_paths[i])
+
+    def sharp(self, i: int) -> np.ndarray:
+        """Sharp ground-truth colour of frame i (synthetic sequences only)."""
+        if self.sharp_paths is None:
+            raise InputError(self.root, "sequence has no sharp ground-truth images", "use a sequence made by 'taichi-gs synth'")
+        return self._checked_color(self.sharp_paths[i])
+
+    def depth(self, i: int) -> np.ndarray:
+        """Depth of frame i in metres, float32 H x W, 0 where invalid."""
+        path = self.depth_paths[i]
+        depth = read_depth(path, self.intrinsics.depth_scale)
+        self._check_size(path, depth.shape[:2], "depth")
+        return depth
+
+    def check_all(self) -> None:
+        """Read every frame once, so corrupt files fail now rather than mid-stage."""
+        for i in range(len(self)):
+            self.color(i)
+            self.depth(i)
+
+    def _checked_color(self, path: Path) -> np.ndarray:
+        color = read_color(path)
+        self._check_size(path, color.shape[:2], "colour")
+        return color
+
+    def _check_size(self, path: Path, shape: tuple[int, int], what: str) -> None:
+        h, w = shape
+        if (w, h) != (self.intrinsics.width, self.intrinsics.height):
+            raise InputError(
+                path,
+                f"{what} image is {w}x{h} but the intrinsics say {self.intrinsics.width}x{self.intrinsics.height}",
+                "give colour and depth at the same resolution as intrinsics.json (align depth to colour first)",
+            )
+
+
+def read_color(path: Path) -> np.ndarray:
+    """Colour image as float32 H x W x 3 RGB in [0, 1] (8- or 16-bit, grey, RGB or RGBA)."""
+    image = _imread(path)
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    elif image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
+    else:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(image.dtype)
+    if scale is None:
+        raise InputError(path, f"colour image has unsupported type {image.dtype}", "save colour as 8- or 16-bit PNG or JPEG")
+    return image.astype(np.float32) / np.float32(scale)
+
+
+def read_depth(path: Path, depth_scale: float) -> np.ndarray:
+    """Depth in metres from a 16-bit PNG (value / depth_scale) or a float ``.npy`` in metres."""
+    if path.suffix == ".npy":
+        depth = _load_npy(path)
+    else:
+        raw = _imread(path)
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            kind = f"{raw.dtype}, {raw.shape[2] if raw.ndim == 3 else 1} channel(s)"
+            raise InputError(path, f"depth must be a 16-bit single-channel PNG, got {kind}",
+                             "save depth as uint16 PNG (value = metres x depth_scale)")
+        depth = raw.astype(np.float32) / np.float32(depth_scale)
+    if not np.all(np.isfinite(depth)):
+        raise InputError(path, "depth contains NaN or inf", "write 0 for invalid depth")
+    if np.any(depth < 0):
+        raise InputError(path, "depth contains negative values", "write 0 for invalid depth")
+    return depth
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    try:
+        depth = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise InputError(path, f"cannot read depth array ({err})", "write depth as a float32 .npy in metres") from None
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
+        raise InputError(path, f"depth array has shape {depth.shape} and type {depth.dtype}",
+                         "write an H x W float array in metres")
+    return depth.astype(np.float32)
+
+
+def _imread(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(path, "image file not found", "restore the file or remove its line from the frame list")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
+        raise InputError(path, "image is unreadable or corrupt", "re-export the image as PNG or JPEG")
+    return image
+
+
+def load_sequence(
+    folder: str | Path,
+    override: IntrinsicsOverride | None = None,
+    max_time_difference: float = MAX_TIME_DIFFERENCE,
+) -> Sequence:
+    """Open a sequence folder (TUM or own layout), checking lists, files, intrinsics and depth scale."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise InputError(root, "sequence folder not found", "give the folder holding rgb.txt/depth.txt or frames.txt")
+    override = override or IntrinsicsOverride()
+    if (root / "frames.txt").is_file():
+        sequence = _open_own_layout(root, override)
+    elif (root / "rgb.txt").is_file() or (root / "depth.txt").is_file():
+        sequence = _open_tum_layout(root, override, max_time_difference)
+    else:
+        raise InputError(root, "no frames.txt, rgb.txt or depth.txt found",
+                         "give a TUM RGB-D folder or one written by 'taichi-gs synth'")
+    if len(sequence) < 2:
+        raise InputError(sequence.root, f"sequence has {len(sequence)} frame(s)", "give at least 2 frames")
+    _check_depth_scale(sequence)
+    return sequence
+
+
+def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
+    list_path = root / "frames.txt"
+    rows = _read_list(list_path, columns=3)
+    timestamps = np.array([float(r[0]) for r in rows])
+    _check_increasing(list_path, timestamps)
+    rgb_paths = [_listed_file(root, r[1], list_path) for r in rows]
+    depth_paths = [_listed_file(root, r[2], list_path) for r in rows]
+    intrinsics = _resolve_intrinsics(root, override, rgb_paths[0])
+    sharp_dir = root / "sharp"
+    sharp_paths = None
+    if sharp_dir.is_dir():
+        sharp_paths = [sharp_dir / p.name for p in rgb_paths]
+        missing = [p for p in sharp_paths if not p.is_file()]
+        if missing:
+            raise InputError(missing[0], "sharp image missing", "restore it or remove the sharp/ folder")
+    return Sequence(
+        root, "taichi-gs", intrinsics, timestamps, rgb_paths, depth_paths,
+        gt_poses=_ground_truth(root / "groundtruth.txt", timestamps),
+        exposure_poses=_exposure(root / "exposure.txt", timestamps),
+        sharp_paths=sharp_paths,
+    )
+
+
+def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: float) -> Sequence:
+    rgb_list, depth_list = root / "rgb.txt", root / "depth.txt"
+    for path in (rgb_list, depth_list):
+        if not path.is_file():
+            raise InputError(path, "file list missing", "a TUM folder needs both rgb.txt and depth.txt")
+    rgb_rows = _read_list(rgb_list, columns=2)
+    depth_rows = _read_list(depth_list, columns=2)
+    rgb_times = np.array([float(r[0]) for r in rgb_rows])
+    depth_times = np.array([float(r[0]) for r in depth_rows])
+    _check_increasing(rgb_list, rgb_times)
+    _check_increasing(depth_list, depth_times)
+    matches = associate(rgb_times, depth_times, max_difference)
+    if not matches:
+        raise InputError(rgb_list, f"no colour frame has a depth frame within {max_difference} s",
+                         "check that rgb.txt and depth.txt share a clock, or raise the association tolerance")
+    timestamps = np.array([rgb_times[i] for i, _ in matches])
+    rgb_paths = [_listed_file(root, rgb_rows[i][1], rgb_list) for i, _ in matches]
+    depth_paths = [_listed_file(root, depth_rows[j][1], depth_list) for _, j in matches]
+    intrinsics = _resolve_intrinsics(root, override, rgb_paths[0])
+    return Sequence(root, "tum", intrinsics, timestamps, rgb_paths, depth_paths,
+                    gt_poses=_ground_truth(root / "groundtruth.txt", timestamps))
+
+
+def associate(first: np.ndarray, second: np.ndarray, max_difference: float) -> list[tuple[int, int]]:
+    """Pair timestamps as TUM's associate.py does: closest pairs first, each stamp used once.
+
+    Returns (index in first, index in second) pairs sorted by the first stamp.
+    """
+    candidates = []
+    for i, a in enumerate(first):
+        lo = np.searchsorted(second, a - max_difference, side="left")
+        hi = np.searchsorted(second, a + max_difference, side="right")
+        candidates.extend((abs(a - second[j]), i, j) for j in range(lo, hi))
+    candidates.sort()
+    used_first, used_second, matches = set(), set(), []
+    for _, i, j in candidates:
+        if i not in used_first and j not in used_second:
+            used_first.add(i)
+            used_second.add(j)
+            matches.append((i, j))
+    return sorted(matches)
+
+
+def _read_list(path: Path, columns: int) -> list[list[str]]:
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) < columns:
+            raise InputError(path, f"line {n} has {len(parts)} fields, expected {columns}",
+                             "write 'timestamp file' per line (frames.txt: 'timestamp rgb depth')")
+        try:
+            stamp = float(parts[0])
+        except ValueError:
+            raise InputError(path, f"line {n}: timestamp {parts[0]!r} is not a number", "fix the timestamp") from None
+        if not math.isfinite(stamp):
+            raise InputError(path, f"line {n}: timestamp is NaN or inf", "fix the timestamp")
+        rows.append(parts[:columns])
+    if not rows:
+        raise InputError(path, "lists no frames", "add one line per frame")
+    return rows
+
+
+def _check_increasing(path: Path, timestamps: np.ndarray) -> None:
+    bad = np.flatnonzero(np.diff(timestamps) <= 0)
+    if bad.size:
+        k = int(bad[0])
+        raise InputError(path, f"timestamps not increasing at entry {k + 2} ({timestamps[k]:.6f} then {timestamps[k + 1]:.6f})",
+                         "sort the list by time and remove duplicate frames")
+
+
+def _listed_file(root: Path, name: str, list_path: Path) -> Path:
+    path = root / name
+    if not path.is_file():
+        raise InputError(path, f"listed in {list_path.name} but missing",
+                         f"restore the frame or remove its line from {list_path.name}")
+    return path
+
+
+def _resolve_intrinsics(root: Path, override: IntrinsicsOverride, first_rgb: Path) -> Intrinsics:
+    json_path = root / "intrinsics.json"
+    values: dict[str, float] = {}
+    if json_path.is_file():
+        try:
+            values = json.loads(json_path.read_text())
+        except json.JSONDecodeError as err:
+            raise InputError(json_path, f"not valid JSON ({err.msg} at line {err.lineno})", "fix the JSON syntax") from None
+        if not isinstance(values, dict):
+            raise InputError(json_path, "must hold a JSON object", 'write {"width", "height", "fx", "fy", "cx", "cy", "depth_scale"}')
+    values = {**values, **override.values()}
+    missing = [k for k in ("fx", "fy", "cx", "cy") if k not in values]
+    if missing:
+        raise InputError(json_path, f"intrinsics {', '.join(missing)} not given",
+                         "write intrinsics.json beside the data or pass --fx --fy --cx --cy")
+    height, width = _imread(first_rgb).shape[:2]
+    values.setdefault("width", width)
+    values.setdefault("height", height)
+    values.setdefault("depth_scale", 5000.0)
+    try:
+        intrinsics = Intrinsics(
+            width=int(values["width"]), height=int(values["height"]),
+            fx=float(values["fx"]), fy=float(values["fy"]), cx=float(values["cx"]), cy=float(values["cy"]),
+            depth_scale=float(values["depth_scale"]),
+        )
+    except (TypeError, ValueError) as err:
+        raise InputError(json_path, f"intrinsics are not numbers ({err})", "write plain numbers") from None
+    numbers = [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, intrinsics.depth_scale]
+    if not all(math.isfinite(v) for v in numbers) or min(intrinsics.fx, intrinsics.fy, intrinsics.depth_scale) <= 0:
+        raise InputError(json_path, "fx, fy and depth_scale must be finite and positive, cx and cy finite",
+                         "fix intrinsics.json or the --fx/--fy/--cx/--cy/--depth-scale flags")
+    if (intrinsics.width, intrinsics.height) != (width, height):
+        raise InputError(first_rgb, f"image is {width}x{height} but intrinsics say {intrinsics.width}x{intrinsics.height}",
+                         "fix width/height in intrinsics.json")
+    return intrinsics
+
+
+def _check_depth_scale(sequence: Sequence) -> None:
+    """Median valid depth over a few frames must be plausible, or the scale is wrong."""
+    picks = np.unique(np.linspace(0, len(sequence) - 1, num=min(3, len(sequence))).astype(int))
+    depths = [sequence.depth(int(i)) for i in picks]
+    valid = np.concatenate([d[d > 0] for d in depths])
+    where = sequence.depth_paths[int(picks[0])]
+    if valid.size == 0:
+        raise InputError(where, "no valid depth in the sampled frames", "check the depth files (0 means invalid)")
+    median = float(np.median(valid))
+    lo, hi = MEDIAN_DEPTH_RANGE
+    if not lo <= median <= hi:
+        scale = sequence.intrinsics.depth_scale
+        raise InputError(where, f"median depth is {median:.4g} m with depth_scale {scale:g}",
+                         f"set the right --depth-scale (units per metre; TUM uses 5000, most sensors 1000); median must lie in {lo}-{hi} m")
+
+
+def _ground_truth(path: Path, timestamps: np.ndarray) -> np.ndarray | None:
+    """Ground-truth poses interpolated to the frame times (NaN where not covered)."""
+    if not path.is_file():
+        return None
+    rows = read_tum_rows(path)
+    order = np.argsort(rows[:, 0])
+    rows = rows[order]
+    return interpolate_poses(rows[:, 0], tum_rows_to_poses(rows), timestamps, MAX_TIME_DIFFERENCE)
+
+
+def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray, tolerance: float) -> np.ndarray:
+    """Poses at query times: linear in position, slerp in rotation; NaN beyond ``tolerance`` outside."""
+    out = np.full((len(query), 4, 4), np.nan)
+    for k, t in enumerate(query):
+        j = int(np.searchsorted(times, t))
+        if j < len(times) and abs(times[j] - t) < 1e-9:
+            out[k] = poses[j]
+        elif 0 < j < len(times):
+            a = (t - times[j - 1]) / (times[j] - times[j - 1])
+            out[k] = _blend(poses[j - 1], poses[j], a)
+        elif j == 0 and times[0] - t <= tolerance:
+            out[k] = poses[0]
+        elif j == len(times) and t - times[-1] <= tolerance:
+            out[k] = poses[-1]
+    return out
+
+
+def _blend(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
+    q0, q1 = rotmat_to_quat(T0[:3, :3]), rotmat_to_quat(T1[:3, :3])
+    if np.dot(q0, q1) < 0:
+        q1 = -q1
+    dot = np.clip(np.dot(q0, q1), -1.0, 1.0)
+    theta = np.arccos(dot)
+    if theta < 1e-8:
+        q = q0
+    else:
+        q = (np.sin((1 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
+    return pose_from_rt(quat_to_rotmat(q), (1 - a) * T0[:3, 3] + a * T1[:3, 3])
+
+
+def _exposure(path: Path, timestamps: np.ndarray) -> np.ndarray | None:
+    """Exposure start/end poses per frame from exposure.txt (15 numbers per line)."""
+    if not path.is_file():
+        return None
+    rows = read_tum_rows(path, columns=15)
+    if len(rows) != len(timestamps) or not np.allclose(rows[:, 0], timestamps, atol=1e-6):
+        raise InputError(path, f"has {len(rows)} rows not matching the {len(timestamps)} frames' timestamps",
+                         "write one 'timestamp start-pose end-pose' line per frame")
+    start = tum_rows_to_poses(rows[:, :8])
+    end = tum_rows_to_poses(np.concatenate([rows[:, :1], rows[:, 8:15]], axis=1))
+    return np.stack([start, end], axis=1)
+

@@ -1,0 +1,67 @@
+"""TUM trajectory files: ``timestamp tx ty tz qx qy qz qw`` per line, camera-to-world."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import pose_from_rt, quat_to_rotmat, rotmat_to_quat
+from .atomic import write_text
+
+
+def format_tum(timestamps: np.ndarray, poses: np.ndarray, header: str | None = None) -> str:
+    """TUM text of camera-to-world poses (N x 4 x 4)."""
+    lines = [f"# {header}"] if header else []
+    for t, T in zip(timestamps, poses):
+        w, x, y, z = rotmat_to_quat(T[:3, :3])
+        tx, ty, tz = T[:3, 3]
+        lines.append(f"{t:.6f} {tx:.9f} {ty:.9f} {tz:.9f} {x:.9f} {y:.9f} {z:.9f} {w:.9f}")
+    return "\n".join(lines) + "\n"
+
+
+def write_tum(path: str | Path, timestamps: np.ndarray, poses: np.ndarray, header: str | None = None) -> None:
+    """Write camera-to-world poses (N x 4 x 4) as a TUM trajectory file, atomically."""
+    if len(timestamps) != len(poses):
+        raise ValueError(f"{len(timestamps)} timestamps but {len(poses)} poses")
+    write_text(path, format_tum(timestamps, poses, header))
+
+
+def read_tum_rows(path: str | Path, columns: int = 8) -> np.ndarray:
+    """Numeric rows of a whitespace/comma separated file, skipping '#' comments and blank lines."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found", "give the path of an existing TUM trajectory file")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) < columns:
+            raise InputError(path, f"line {n} has {len(parts)} values, expected {columns}",
+                             "use 'timestamp tx ty tz qx qy qz qw' per line")
+        try:
+            rows.append([float(p) for p in parts[:columns]])
+        except ValueError:
+            raise InputError(path, f"line {n} is not numeric", "remove or comment out the line") from None
+    if not rows:
+        raise InputError(path, "no poses in file", "write one 'timestamp tx ty tz qx qy qz qw' line per pose")
+    data = np.asarray(rows)
+    if not np.all(np.isfinite(data)):
+        raise InputError(path, "NaN or inf in trajectory", "remove the non-finite rows")
+    return data
+
+
+def tum_rows_to_poses(rows: np.ndarray) -> np.ndarray:
+    """Camera-to-world 4x4 poses from TUM rows (``tx ty tz qx qy qz qw`` in columns 1..7)."""
+    return np.stack(
+        [pose_from_rt(quat_to_rotmat([r[7], r[4], r[5], r[6]]), r[1:4]) for r in rows]
+    )
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (N,) and camera-to-world poses (N x 4 x 4) of a TUM trajectory file."""
+    rows = read_tum_rows(path)
+    return rows[:, 0], tum_rows_to_poses(rows)

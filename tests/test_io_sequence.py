@@ -1,0 +1,158 @@
+"""The sequence reader: both layouts, association, ground truth, and one test per bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from taichi_gs.errors import InputError
+from taichi_gs.io.sequence import IntrinsicsOverride, associate, load_sequence
+from conftest import write_frame_images
+
+
+def test_own_layout_reads_frames_and_ground_truth(own_layout):
+    seq = load_sequence(own_layout)
+    assert len(seq) == 3 and seq.layout == "taichi-gs"
+    color, depth = seq.color(1), seq.depth(1)
+    assert color.shape == (30, 40, 3) and color.dtype == np.float32 and 0 <= color.min() and color.max() <= 1
+    assert depth.dtype == np.float32 and np.allclose(depth, 2.0)
+    assert np.allclose(seq.gt_poses[2][:3, 3], [0.2, 0, 0]) and seq.names == ["000000", "000001", "000002"]
+    assert np.allclose(seq.K(), [[50, 0, 20], [0, 50, 15], [0, 0, 1]])
+
+
+def test_tum_layout_associates_and_interpolates_ground_truth(tum_layout):
+    seq = load_sequence(tum_layout)
+    assert len(seq) == 4 and seq.layout == "tum"
+    assert seq.depth_paths[2].name == "000002.png"
+    # Ground truth x = (t - 1000) at 100 Hz, linearly interpolated to the colour timestamps.
+    assert np.allclose(seq.gt_poses[:, 0, 3], seq.timestamps - 1000.0, atol=1e-9)
+
+
+def test_associate_uses_each_stamp_once_closest_first():
+    a = np.array([0.0, 0.010, 0.100])
+    b = np.array([0.004, 0.012, 0.5])
+    assert associate(a, b, 0.02) == [(0, 0), (1, 1)]
+
+
+def test_cli_flags_override_intrinsics(own_layout):
+    seq = load_sequence(own_layout, IntrinsicsOverride(fx=99.0, depth_scale=2500.0))
+    assert seq.intrinsics.fx == 99.0 and seq.intrinsics.fy == 50.0
+    assert np.allclose(seq.depth(0), 4.0)
+
+
+def expect_error(folder, match, file=None, **kwargs):
+    with pytest.raises(InputError, match=match) as info:
+        seq = load_sequence(folder, **kwargs)
+        seq.check_all()
+    if file is not None:
+        assert info.value.path is not None and info.value.path.name == file
+    assert "\n" not in str(info.value)
+    return info.value
+
+
+def test_missing_folder(tmp_path):
+    expect_error(tmp_path / "nope", "folder not found", file="nope")
+
+
+def test_missing_lists(tmp_path):
+    expect_error(tmp_path, "no frames.txt, rgb.txt or depth.txt")
+
+
+def test_tum_missing_depth_list(tum_layout):
+    (tum_layout / "depth.txt").unlink()
+    expect_error(tum_layout, "file list missing", file="depth.txt")
+
+
+def test_missing_frame_file(own_layout):
+    (own_layout / "depth" / "000001.png").unlink()
+    expect_error(own_layout, "missing", file="000001.png")
+
+
+def test_corrupt_image(own_layout):
+    (own_layout / "rgb" / "000002.png").write_bytes(b"\x89PNG garbage")
+    expect_error(own_layout, "unreadable or corrupt", file="000002.png")
+
+
+def test_depth_not_16_bit(own_layout):
+    cv2.imwrite(str(own_layout / "depth" / "000001.png"), np.full((30, 40), 10, dtype=np.uint8))
+    expect_error(own_layout, "16-bit", file="000001.png")
+
+
+def test_colour_depth_size_mismatch(own_layout):
+    cv2.imwrite(str(own_layout / "depth" / "000001.png"), np.full((20, 40), 10000, dtype=np.uint16))
+    expect_error(own_layout, "40x20", file="000001.png")
+
+
+def test_no_association_within_tolerance(tum_layout):
+    lines = (tum_layout / "depth.txt").read_text().splitlines()
+    shifted = [lines[0]] + [f"{float(l.split()[0]) + 5:.6f} {l.split()[1]}" for l in lines[1:]]
+    (tum_layout / "depth.txt").write_text("\n".join(shifted) + "\n")
+    expect_error(tum_layout, "no colour frame has a depth frame", file="rgb.txt")
+
+
+def test_non_increasing_timestamps(own_layout):
+    text = (own_layout / "frames.txt").read_text().replace("0.066667", "0.010000")
+    (own_layout / "frames.txt").write_text(text)
+    expect_error(own_layout, "not increasing", file="frames.txt")
+
+
+@pytest.mark.parametrize("scale, shown", [(50.0, "200"), (5e6, "0.002")])
+def test_absurd_depth_scale(own_layout, scale, shown):
+    err = expect_error(own_layout, "median depth", override=IntrinsicsOverride(depth_scale=scale))
+    assert shown in str(err) and "--depth-scale" in str(err)
+
+
+def test_nan_in_depth(own_layout):
+    rgb, _ = write_frame_images(own_layout, 7)
+    depth = np.full((30, 40), 2.0, dtype=np.float32)
+    depth[3, 3] = np.nan
+    np.save(own_layout / "depth" / "000007.npy", depth)
+    with open(own_layout / "frames.txt", "a") as f:
+        f.write(f"0.300000 {rgb} depth/000007.npy\n")
+    expect_error(own_layout, "NaN or inf", file="000007.npy")
+
+
+def test_nan_in_intrinsics(own_layout):
+    data = json.loads((own_layout / "intrinsics.json").read_text())
+    data["fx"] = float("nan")
+    (own_layout / "intrinsics.json").write_text(json.dumps(data))
+    expect_error(own_layout, "finite", file="intrinsics.json")
+
+
+def test_nan_timestamp(own_layout):
+    text = (own_layout / "frames.txt").read_text().replace("0.033333", "nan")
+    (own_layout / "frames.txt").write_text(text)
+    expect_error(own_layout, "NaN", file="frames.txt")
+
+
+def test_nan_in_ground_truth(own_layout):
+    (own_layout / "groundtruth.txt").write_text("0.0 nan 0 0 0 0 0 1\n")
+    expect_error(own_layout, "NaN", file="groundtruth.txt")
+
+
+def test_fewer_than_two_frames(own_layout):
+    lines = (own_layout / "frames.txt").read_text().splitlines()[:2]
+    (own_layout / "frames.txt").write_text("\n".join(lines) + "\n")
+    expect_error(own_layout, "1 frame", file="own")
+
+
+def test_missing_intrinsics(own_layout):
+    (own_layout / "intrinsics.json").unlink()
+    expect_error(own_layout, "fx, fy, cx, cy not given", file="intrinsics.json")
+    assert len(load_sequence(own_layout, IntrinsicsOverride(fx=50, fy=50, cx=20, cy=15))) == 3
+
+
+def test_no_valid_depth(own_layout):
+    for i in range(3):
+        cv2.imwrite(str(own_layout / "depth" / f"{i:06d}.png"), np.zeros((30, 40), dtype=np.uint16))
+    expect_error(own_layout, "no valid depth")
+
+
+def test_reader_never_writes_into_input(own_layout):
+    before = sorted((p, p.stat().st_mtime_ns) for p in Path(own_layout).rglob("*"))
+    load_sequence(own_layout).check_all()
+    assert sorted((p, p.stat().st_mtime_ns) for p in Path(own_layout).rglob("*")) == before
