@@ -7,12 +7,15 @@ import platform
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from . import __version__
 from .errors import InputError
-from .evaluate import match_by_time, trajectory_errors
+from .evaluate import align_trajectory, match_by_time, trajectory_errors
 from .io.atomic import write_text
 from .io.sequence import load_sequence
 from .io.trajectory import read_tum
+from .plots import line_plot, trajectory_plot
 
 STAGES = ("pose", "refine", "deblur")
 RUN_INFO = "run.json"
@@ -41,15 +44,27 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
     if sequence.gt_poses is None:
         raise InputError(sequence.root, "sequence has no groundtruth.txt", "evaluate against a sequence with ground truth")
     trajectories: dict[str, Any] = {}
+    aligned: dict[str, np.ndarray] = {"ground truth": sequence.gt_poses}
+    position_errors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for stage in STAGES:
         path = run_dir / stage / "trajectory.txt"
         if not path.is_file():
             continue
         t_est, est = read_tum(path)
         i, j = match_by_time(t_est, sequence.timestamps)
-        trajectories[stage] = trajectory_errors(est[i], sequence.gt_poses[j]).as_dict()
+        gt = sequence.gt_poses[j]
+        trajectories[stage] = trajectory_errors(est[i], gt).as_dict()
+        finite = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
+        if finite.sum() >= 3:
+            moved = align_trajectory(est[i][finite], gt[finite])
+            aligned[stage] = moved
+            position_errors[stage] = (j[finite], np.linalg.norm(moved[:, :3, 3] - gt[finite][:, :3, 3], axis=1))
     if not trajectories:
         raise InputError(run_dir, "no stage output (pose/, refine/, deblur/) with a trajectory.txt", "run 'taichi-gs pose' first")
+    if position_errors:
+        trajectory_plot(run_dir / "report" / "trajectory_top.png", aligned, "trajectories, aligned to ground truth (top view)")
+        line_plot(run_dir / "report" / "position_error.png", position_errors, "position error after alignment",
+                  "frame", "error (m)")
     metrics = {
         "trajectory": trajectories,
         "versions": {"taichi-gs": __version__, "python": platform.python_version()},
