@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import platform
@@ -175,6 +176,100 @@ def eval_(
     typer.echo(json.dumps(metrics, indent=2) if as_json else f"wrote {run_dir / 'metrics.json'}")
 
 
+def _intrinsics_override(fx, fy, cx, cy, depth_scale):
+    from .io.sequence import IntrinsicsOverride
+
+    return IntrinsicsOverride(fx=fx, fy=fy, cx=cx, cy=cy, depth_scale=depth_scale)
+
+
+FxOption = Annotated[Optional[float], typer.Option("--fx", help="Focal length x (px); wins over intrinsics.json.")]
+FyOption = Annotated[Optional[float], typer.Option("--fy", help="Focal length y (px).")]
+CxOption = Annotated[Optional[float], typer.Option("--cx", help="Principal point x (px).")]
+CyOption = Annotated[Optional[float], typer.Option("--cy", help="Principal point y (px).")]
+DepthScaleOption = Annotated[Optional[float], typer.Option("--depth-scale", help="Depth PNG units per metre (TUM: 5000).")]
+
+
+@app.command()
+@handles_errors
+def pose(
+    folder: Annotated[Path, typer.Argument(help="Input sequence folder (TUM or taichi-gs layout).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder; results go to OUT/pose/.")],
+    flow_dir: Annotated[Optional[Path], typer.Option(help="Precomputed flows (.flo or .npy, one per pair).")] = None,
+    config_file: Annotated[Optional[Path], typer.Option("--config", help="TOML file with a [pose] table.")] = None,
+    fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
+    depth_scale: DepthScaleOption = None,
+) -> None:
+    """Stage 1: relative poses from optical flow and depth, refined by ICP, chained; fused point cloud."""
+    from .config import read_config, write_config
+    from .io.sequence import load_sequence
+    from .report import write_run_info
+    from .stages.pose import PoseConfig, run_pose
+
+    _check_output_folder(folder, out)
+    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale))
+    config = PoseConfig()
+    if config_file is not None:
+        config = read_config(config_file, {"pose": config})["pose"]
+    if flow_dir is not None:
+        config = dataclasses.replace(config, flow_dir=str(flow_dir))
+    write_run_info(out, folder)
+    write_config(out / "pose" / "config.toml", {"pose": config})
+    with progress_bar("stage 1: pose", len(sequence) - 1) as update:
+        result = run_pose(sequence, out, config, progress=lambda done, total: update(done, total))
+    weak = sum(1 for p in result.pairs if p.get("weak"))
+    console.print(f"stage 1 done: {len(sequence) - 1} pairs, {weak} weak; results in {out / 'pose'}")
+
+
+class Preset(str, Enum):
+    fast = "fast"
+    paper = "paper"
+
+
+@app.command()
+@handles_errors
+def refine(
+    out: Annotated[Path, typer.Argument(help="Run folder holding pose/ from stage 1; results go to OUT/refine/.")],
+    poses: Annotated[Optional[Path], typer.Option(help="TUM trajectory to start from (default OUT/pose/trajectory.txt).")] = None,
+    points: Annotated[Optional[Path], typer.Option(help="Fused point cloud PLY (default OUT/pose/points.ply).")] = None,
+    preset: Annotated[Preset, typer.Option(help="fast: a CPU-sized schedule; paper: the method's 600 N iterations.")] = Preset.fast,
+    config_file: Annotated[Optional[Path], typer.Option("--config", help="TOML file with a [refine] table.")] = None,
+) -> None:
+    """Stage 2: refine poses, positions and opacities of fixed-scale Gaussians against the input depth."""
+    from .config import read_config, write_config
+    from .io.sequence import load_sequence
+    from .report import sequence_folder
+    from .stages.refine import PRESETS, load_stage1, run_refine
+
+    _, initial, cloud, colors, voxel = load_stage1(out, poses, points)
+    sequence = load_sequence(sequence_folder(out))
+    config = PRESETS[preset.value]
+    if config_file is not None:
+        config = read_config(config_file, {"refine": config})["refine"]
+    if config.voxel_size <= 0:
+        config = dataclasses.replace(config, voxel_size=voxel)
+    _init_backend()
+    write_config(out / "refine" / "config.toml", {"refine": config})
+    total = config.iterations_per_frame * len(sequence)
+    with progress_bar("stage 2: refine", total) as update:
+        result = run_refine(sequence, initial, cloud, colors, out, config, progress=update)
+    console.print(f"stage 2 done: {result.gaussians} Gaussians, {result.seconds_per_iteration * 1000:.1f} ms/iteration; "
+                  f"results in {out / 'refine'}")
+
+
+def _init_backend() -> None:
+    from .kernels import runtime
+
+    backend = runtime.init(state.arch)
+    console.print(f"Taichi backend: {backend.arch}", highlight=False)
+
+
+def _check_output_folder(folder: Path, out: Path) -> None:
+    """Refuse to write inside the input folder."""
+    folder, target = folder.resolve(), out.resolve()
+    if target == folder or folder in target.parents:
+        raise InputError(out, "output folder lies inside the input folder", "choose an --out outside the input (inputs are never written to)")
+
+
 def _not_built(name: str, issue: str) -> Callable[..., None]:
     def command() -> None:
         _fail(f"'{name}' is not built yet ({issue}); nothing was run", EXIT_NOT_BUILT)
@@ -185,8 +280,6 @@ def _not_built(name: str, issue: str) -> Callable[..., None]:
 
 for _name, _issue in {
     "reconstruct": "end-to-end issue: runs pose, refine and deblur",
-    "pose": "stage 1: local pose",
-    "refine": "stage 2: global refinement",
     "deblur": "stage 3: deblurring",
     "render": "end-to-end issue: renders from a finished run",
     "export": "end-to-end issue: nerfstudio/COLMAP/PLY export",

@@ -26,7 +26,8 @@ def write_run_info(run_dir: Path, sequence_folder: Path) -> None:
     write_text(run_dir / RUN_INFO, json.dumps({"sequence": str(sequence_folder.resolve())}, indent=2) + "\n")
 
 
-def _sequence_folder(run_dir: Path, gt: Path | None) -> Path:
+def sequence_folder(run_dir: Path, gt: Path | None = None) -> Path:
+    """The input sequence of a run: ``gt`` if given, else the one recorded in RUN_DIR/run.json."""
     if gt is not None:
         return gt
     info = run_dir / RUN_INFO
@@ -40,7 +41,7 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(run_dir, "run folder not found", "give the --out folder of a taichi-gs run")
-    sequence = load_sequence(_sequence_folder(run_dir, gt))
+    sequence = load_sequence(sequence_folder(run_dir, gt))
     if sequence.gt_poses is None:
         raise InputError(sequence.root, "sequence has no groundtruth.txt", "evaluate against a sequence with ground truth")
     trajectories: dict[str, Any] = {}

@@ -1,0 +1,164 @@
+"""Optical flow between colour frames: OpenCV DIS by default, or precomputed files from any network.
+
+A flow is a float32 H x W x 2 array; ``flow[v, u] = (du, dv)`` moves pixel (u, v) of the first
+frame to (u + du, v + dv) in the second, in OpenCV's pixel convention.
+
+Precomputed flows (``--flow-dir``): one file per pair k (frame k -> k+1), either Middlebury
+``.flo`` or NumPy ``.npy`` (H x W x 2), named by the pair index (``000007.flo``) or by the colour
+file stem of frame k (``frame_0007.npy``). Optional backward flows (frame k+1 -> k) carry the suffix
+``_backward`` (``000007_backward.flo``); without them the forward-backward check is skipped.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+from .io.atomic import atomic_path
+
+FLO_MAGIC = 202021.25  # Middlebury .flo tag ("PIEH" as a float32)
+FLOW_SUFFIXES = (".flo", ".npy")
+BACKWARD_SUFFIX = "_backward"
+DIS_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+
+
+class FlowProvider(Protocol):
+    """Source of dense flow between frames i and j of a sequence."""
+
+    def flow(self, i: int, j: int) -> np.ndarray | None:
+        """Flow from frame i to frame j (H x W x 2), or None if this provider has none for the pair."""
+
+
+def to_gray_u8(color: np.ndarray) -> np.ndarray:
+    """8-bit grey image of an RGB float image in [0, 1]."""
+    gray = cv2.cvtColor(np.ascontiguousarray(color, dtype=np.float32), cv2.COLOR_RGB2GRAY)
+    return np.clip(np.round(gray * 255.0), 0, 255).astype(np.uint8)
+
+
+def dis_flow(gray_a: np.ndarray, gray_b: np.ndarray, preset: str = "medium") -> np.ndarray:
+    """DIS optical flow (Kroeger et al. 2016) from 8-bit grey image a to b."""
+    if preset not in DIS_PRESETS:
+        raise ValueError(f"unknown DIS preset {preset!r}; use one of {', '.join(DIS_PRESETS)}")
+    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
+    return dis.calc(gray_a, gray_b, None).astype(np.float32)
+
+
+class DISFlow:
+    """FlowProvider computing DIS flow on the grey colour frames of a sequence (two frames cached)."""
+
+    def __init__(self, sequence, preset: str = "medium"):
+        self.sequence = sequence
+        self.preset = preset
+        self._gray: dict[int, np.ndarray] = {}
+
+    def flow(self, i: int, j: int) -> np.ndarray:
+        return dis_flow(self._gray_frame(i), self._gray_frame(j), self.preset)
+
+    def _gray_frame(self, i: int) -> np.ndarray:
+        if i not in self._gray:
+            if len(self._gray) >= 2:
+                self._gray.pop(max(self._gray, key=lambda k: abs(k - i)))
+            self._gray[i] = to_gray_u8(self.sequence.color(i))
+        return self._gray[i]
+
+
+class FileFlow:
+    """FlowProvider reading one precomputed flow file per consecutive pair from a folder."""
+
+    def __init__(self, folder: str | Path, names: list[str]):
+        self.folder = Path(folder)
+        self.names = names
+        if not self.folder.is_dir():
+            raise InputError(self.folder, "flow folder not found", "give --flow-dir an existing folder of .flo or .npy files")
+
+    def check(self) -> None:
+        """Fail now, naming the first missing file, rather than mid-stage."""
+        for k in range(len(self.names) - 1):
+            if self._find(k, backward=False) is None:
+                raise InputError(self.folder, f"no flow file for pair {k} ({self.names[k]} -> {self.names[k + 1]})",
+                                 f"write {k:06d}.flo, {k:06d}.npy, {self.names[k]}.flo or {self.names[k]}.npy")
+
+    def flow(self, i: int, j: int) -> np.ndarray | None:
+        if abs(i - j) != 1:
+            return None
+        path = self._find(min(i, j), backward=j < i)
+        return None if path is None else read_flow(path)
+
+    def _find(self, k: int, backward: bool) -> Path | None:
+        tag = BACKWARD_SUFFIX if backward else ""
+        for stem in (f"{k:06d}", self.names[k]):
+            for suffix in FLOW_SUFFIXES:
+                path = self.folder / f"{stem}{tag}{suffix}"
+                if path.is_file():
+                    return path
+        return None
+
+
+def read_flow(path: str | Path) -> np.ndarray:
+    """Flow from a Middlebury ``.flo`` or a ``.npy`` (H x W x 2) file, as float32."""
+    path = Path(path)
+    if path.suffix == ".flo":
+        return read_flo(path)
+    if path.suffix == ".npy":
+        flow = np.load(path, allow_pickle=False)
+        if flow.ndim != 3 or flow.shape[2] != 2:
+            raise InputError(path, f"flow array has shape {flow.shape}", "save an H x W x 2 array of (du, dv)")
+        return flow.astype(np.float32)
+    raise InputError(path, f"unknown flow file type {path.suffix!r}", "use .flo or .npy")
+
+
+def write_flow(path: str | Path, flow: np.ndarray) -> None:
+    """Write a flow as ``.flo`` or ``.npy`` (chosen by the suffix), atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if path.suffix == ".flo":
+            h, w = flow.shape[:2]
+            with open(tmp, "wb") as f:
+                np.array([FLO_MAGIC], "<f4").tofile(f)
+                np.array([w, h], "<i4").tofile(f)
+                flow.astype("<f4").tofile(f)
+        elif path.suffix == ".npy":
+            with open(tmp, "wb") as f:
+                np.save(f, flow.astype(np.float32))
+        else:
+            raise ValueError(f"unknown flow file type {path.suffix!r}; use .flo or .npy")
+
+
+def read_flo(path: Path) -> np.ndarray:
+    """Middlebury ``.flo``: float32 tag 202021.25, int32 width, int32 height, then u, v interleaved."""
+    data = path.read_bytes()
+    if len(data) < 12 or np.frombuffer(data[:4], "<f4")[0] != FLO_MAGIC:
+        raise InputError(path, "not a Middlebury .flo file (bad tag)", "write flows with the standard .flo writer or as .npy")
+    w, h = np.frombuffer(data[4:12], "<i4")
+    if len(data) != 12 + 8 * int(w) * int(h):
+        raise InputError(path, f"file size does not match {w}x{h}", "rewrite the file; it may be truncated")
+    return np.frombuffer(data[12:], "<f4").reshape(int(h), int(w), 2).astype(np.float32)
+
+
+def warp_by_flow(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
+    """Sample ``image`` at p + flow(p) bilinearly; NaN outside the image."""
+    h, w = flow.shape[:2]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    map_u, map_v = u + flow[..., 0], v + flow[..., 1]
+    return cv2.remap(image.astype(np.float32), map_u, map_v, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+
+
+def forward_backward_mask(forward: np.ndarray, backward: np.ndarray, alpha: float = 0.01, beta: float = 0.5) -> np.ndarray:
+    """Pixels whose forward flow is undone by the backward flow (Sundaram et al. 2010).
+
+    Consistent where |f + b(p + f)|^2 < alpha (|f|^2 + |b(p + f)|^2) + beta and p + f lies inside.
+    """
+    back = warp_by_flow(backward, forward)
+    round_trip = np.sum((forward + back) ** 2, axis=-1)
+    bound = alpha * (np.sum(forward**2, axis=-1) + np.sum(back**2, axis=-1)) + beta
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(round_trip) & (round_trip < bound)

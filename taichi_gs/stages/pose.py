@@ -1,0 +1,345 @@
+"""Stage 1: local pose. Relative poses frame t -> t+1 from optical flow, colour and depth, refined by
+point-to-plane ICP, chained into camera-to-world poses; all frames fused into one coloured cloud.
+
+Outputs in OUT/pose/: ``trajectory.txt`` (TUM, camera-to-world, first frame = identity),
+``points.ply`` (voxel-downsampled coloured cloud), ``pairs.json`` (per-pair diagnostics and a
+summary), ``config.toml``, and ``pairs/NNNNNN.json`` (per-pair cache, so a rerun skips finished pairs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from ..config import write_config
+from ..errors import InputError
+from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, to_gray_u8
+from ..geometry import invert, se3_log
+from ..icp import depth_cloud, multiscale_point_to_plane, reliable_depth_mask
+from ..io.atomic import write_text
+from ..io.ply import write_point_cloud
+from ..io.trajectory import write_tum
+from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
+from .pose_solver import SolverSettings, solve
+
+# Estimate kinds recorded per pair.
+FROM_ICP, FROM_FLOW, FROM_CONSTANT_VELOCITY = "icp", "flow", "constant-velocity"
+
+
+@dataclass(frozen=True)
+class PoseConfig:
+    """Every number of stage 1. Units: pixels, grey values in [0, 1], metres, degrees."""
+
+    # Optical flow
+    flow_dir: str = ""  # precomputed flows (see taichi_gs.flow); empty: OpenCV DIS
+    flow_preset: str = "medium"  # DIS preset: ultrafast | fast | medium
+    fb_alpha: float = 0.01  # forward-backward check: |f + b|^2 < alpha (|f|^2 + |b|^2) + beta
+    fb_beta: float = 0.5  # px^2
+    # Pixels used by the solver
+    max_points: int = 4000
+    min_points: int = 150  # fewer valid pixels: the pair is weak and falls back
+    min_depth_m: float = 0.1
+    max_depth_m: float = 10.0
+    depth_edge_ratio: float = 0.05  # drop pixels whose 3x3 depth spread exceeds this fraction of depth
+    seed: int = 0
+    # Loss L_F + l_I L_I + l_C L_C (phase 1: flow only; phase 2: all three)
+    photometric_weight: float = 75.0
+    depth_consistency_weight: float = 25.0
+    flow_floor_px: float = 0.05  # IRLS: residuals below the floor are weighted as if at the floor
+    photometric_floor: float = 0.002
+    depth_floor_m: float = 0.0005
+    min_baseline_m: float = 0.001  # shorter baselines leave L_C undefined; it is then skipped
+    # Levenberg-Marquardt, per phase
+    max_iterations: int = 50
+    step_tolerance: float = 1e-7
+    cost_tolerance: float = 1e-6
+    initial_damping: float = 1e-4
+    max_flow_residual_px: float = 8.0  # median flow residual above it flags the pair weak (estimate kept)
+    # Point-to-plane ICP from the flow estimate
+    use_icp: bool = True
+    icp_voxel_m: float = 0.01  # finest ICP voxel; coarser levels are multiples of it
+    icp_scales: tuple = (4.0, 2.0, 1.0)
+    icp_iterations: tuple = (30, 20, 15)
+    icp_distance_factor: float = 2.0  # correspondence distance = factor x voxel
+    icp_normal_radius_factor: float = 3.0
+    icp_normal_max_nn: int = 30
+    icp_min_fitness: float = 0.3  # below: keep the flow estimate, flag the pair
+    icp_max_jump_m: float = 0.05  # ICP moving farther from the flow estimate: keep the flow estimate
+    icp_max_jump_deg: float = 2.0
+    # Fused cloud
+    voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
+
+    def solver_settings(self, with_all_terms: bool) -> SolverSettings:
+        return SolverSettings(
+            photometric_weight=self.photometric_weight if with_all_terms else 0.0,
+            depth_consistency_weight=self.depth_consistency_weight if with_all_terms else 0.0,
+            flow_floor_px=self.flow_floor_px, photometric_floor=self.photometric_floor,
+            depth_floor_m=self.depth_floor_m, min_baseline_m=self.min_baseline_m, min_points=self.min_points,
+            max_iterations=self.max_iterations, step_tolerance=self.step_tolerance,
+            cost_tolerance=self.cost_tolerance, initial_damping=self.initial_damping,
+        )
+
+    def pair_key(self) -> str:
+        """Hash of the fields that change a pair's result (not the fused cloud's voxel size)."""
+        values = {k: v for k, v in dataclasses.asdict(self).items() if k != "voxel_size_m"}
+        return hashlib.sha1(json.dumps(values, sort_keys=True, default=list).encode()).hexdigest()[:16]
+
+
+@dataclass
+class RelativePose:
+    """Transform camera t -> camera t+1 and how it was obtained."""
+
+    transform: np.ndarray
+    estimate: str  # icp | flow | constant-velocity
+    weak: bool = False
+    reason: str = ""
+    flow_transform: np.ndarray | None = None
+    flow_residual_px: float = float("nan")  # median |F(p_i) - (p_j - p_i)| at the final transform
+    points: int = 0
+    iterations: tuple[int, int] = (0, 0)
+    icp_fitness: float = float("nan")
+    icp_inlier_rmse_m: float = float("nan")
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {
+            "transform": self.transform.tolist(),
+            "estimate": self.estimate, "weak": self.weak, "reason": self.reason,
+            "flow_transform": None if self.flow_transform is None else self.flow_transform.tolist(),
+            "flow_residual_px": _finite_or_none(self.flow_residual_px), "points": self.points,
+            "iterations": list(self.iterations), "icp_fitness": _finite_or_none(self.icp_fitness),
+            "icp_inlier_rmse_m": _finite_or_none(self.icp_inlier_rmse_m), "seconds": round(self.seconds, 4),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RelativePose:
+        nan = float("nan")
+        return cls(
+            transform=np.array(d["transform"], dtype=np.float64), estimate=d["estimate"], weak=d["weak"], reason=d["reason"],
+            flow_transform=None if d["flow_transform"] is None else np.array(d["flow_transform"], dtype=np.float64),
+            flow_residual_px=nan if d["flow_residual_px"] is None else d["flow_residual_px"], points=d["points"],
+            iterations=tuple(d["iterations"]), icp_fitness=nan if d["icp_fitness"] is None else d["icp_fitness"],
+            icp_inlier_rmse_m=nan if d["icp_inlier_rmse_m"] is None else d["icp_inlier_rmse_m"], seconds=d["seconds"],
+        )
+
+
+@dataclass
+class PoseResult:
+    """Camera-to-world poses (N x 4 x 4), per-pair records (as in pairs.json) and the files written."""
+
+    poses: np.ndarray
+    pairs: list[dict]
+    paths: dict[str, Path] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        weak = sum(1 for p in self.pairs if p["weak"])
+        fallback = sum(1 for p in self.pairs if p["estimate"] == FROM_CONSTANT_VELOCITY)
+        return f"{len(self.pairs)} pairs, {weak} weak ({fallback} replaced by constant velocity)"
+
+
+def estimate_relative_pose(
+    color_t: np.ndarray,
+    depth_t: np.ndarray,
+    color_t1: np.ndarray,
+    depth_t1: np.ndarray,
+    K: np.ndarray,
+    flow: np.ndarray | None = None,
+    config: PoseConfig = PoseConfig(),
+    backward_flow: np.ndarray | None = None,
+    prior: np.ndarray | None = None,
+) -> RelativePose:
+    """Transform camera t -> t+1 minimising L_F, then L_F + l_I L_I + l_C L_C, then refined by ICP.
+
+    Without ``flow``, forward and backward DIS flows are computed. ``prior`` (default identity) is
+    returned, flagged weak, when the pair cannot be aligned.
+    """
+    start = time.perf_counter()
+    prior = np.eye(4) if prior is None else prior
+    if flow is None:
+        gray_t, gray_t1 = to_gray_u8(color_t), to_gray_u8(color_t1)
+        flow = dis_flow(gray_t, gray_t1, config.flow_preset)
+        backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset)
+    source_mask = reliable_depth_mask(depth_t, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+    samples = sample_pair(color_t, depth_t, color_t1, depth_t1, K, flow, backward_flow, source_mask, config)
+    if len(samples.points) < config.min_points:
+        return _fallback(prior, f"only {len(samples.points)} pixels with reliable depth and consistent flow", start)
+
+    flow_only = solve(np.eye(4), samples, config.solver_settings(with_all_terms=False))
+    if not np.isfinite(flow_only.cost):
+        return _fallback(prior, f"flow solve left {flow_only.valid_points} valid pixels", start)
+    full = solve(flow_only.T, samples, config.solver_settings(with_all_terms=True))
+    flow_T = full.T if np.isfinite(full.cost) else flow_only.T
+    if not np.all(np.isfinite(flow_T)):
+        return _fallback(prior, "solver diverged (non-finite pose)", start)
+    result = RelativePose(flow_T, FROM_FLOW, flow_transform=flow_T, points=len(samples.points),
+                          iterations=(flow_only.iterations, full.iterations))
+    if config.use_icp:
+        _refine_with_icp(result, depth_t, depth_t1, K, source_mask, config)
+    final = warp(result.transform, samples)
+    if final.valid.sum() > 0:
+        result.flow_residual_px = float(np.median(flow_residuals(final, samples).norms()[final.valid]))
+    if not result.weak and not result.flow_residual_px <= config.max_flow_residual_px:
+        result.weak, result.reason = True, f"median flow residual {result.flow_residual_px:.2f} px"
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def sample_pair(
+    color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
+    flow: np.ndarray, backward_flow: np.ndarray | None, source_mask: np.ndarray, config: PoseConfig,
+) -> PairSamples:
+    """Up to ``max_points`` random source pixels with reliable depth and forward-backward consistent flow."""
+    usable = source_mask & np.all(np.isfinite(flow), axis=-1)
+    if backward_flow is not None:
+        usable &= forward_backward_mask(flow, backward_flow, config.fb_alpha, config.fb_beta)
+    index = np.flatnonzero(usable)
+    if len(index) > config.max_points:
+        index = np.sort(np.random.default_rng(config.seed).choice(index, config.max_points, replace=False))
+    v, u = np.divmod(index, depth_t.shape[1])
+    z = depth_t.reshape(-1)[index].astype(np.float64)
+    points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
+    gray_t = cv2.cvtColor(np.ascontiguousarray(color_t, dtype=np.float32), cv2.COLOR_RGB2GRAY)
+    gray_t1 = cv2.cvtColor(np.ascontiguousarray(color_t1, dtype=np.float32), cv2.COLOR_RGB2GRAY).astype(np.float64)
+    return PairSamples(
+        points=points, pixels=np.stack([u, v], axis=-1).astype(np.float64),
+        flow=flow.reshape(-1, 2)[index].astype(np.float64), intensity=gray_t.reshape(-1)[index].astype(np.float64),
+        K=np.asarray(K, dtype=np.float64), target_gray=gray_t1, target_gradient=image_gradient(gray_t1),
+        target_depth=depth_t1.astype(np.float64),
+    )
+
+
+def _refine_with_icp(result: RelativePose, depth_t: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
+                     source_mask: np.ndarray, config: PoseConfig) -> None:
+    """Replace the flow estimate by point-to-plane ICP unless ICP fits poorly or jumps away from it."""
+    target_mask = reliable_depth_mask(depth_t1, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+    icp = multiscale_point_to_plane(
+        depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), result.transform,
+        voxel_sizes=tuple(s * config.icp_voxel_m for s in config.icp_scales), iterations=tuple(config.icp_iterations),
+        distance_factor=config.icp_distance_factor, normal_radius_factor=config.icp_normal_radius_factor,
+        normal_max_nn=config.icp_normal_max_nn,
+    )
+    result.icp_fitness, result.icp_inlier_rmse_m = icp.fitness, icp.inlier_rmse
+    jump = se3_log(icp.transform @ invert(result.transform))
+    jump_m, jump_deg = float(np.linalg.norm(jump[:3])), float(np.degrees(np.linalg.norm(jump[3:])))
+    if not np.all(np.isfinite(icp.transform)) or icp.fitness < config.icp_min_fitness:
+        result.weak, result.reason = True, f"ICP fitness {icp.fitness:.2f} < {config.icp_min_fitness}; kept the flow estimate"
+    elif jump_m > config.icp_max_jump_m or jump_deg > config.icp_max_jump_deg:
+        result.weak = True
+        result.reason = f"ICP moved {jump_m:.3f} m / {jump_deg:.2f} deg from the flow estimate; kept the flow estimate"
+    else:
+        result.transform, result.estimate = icp.transform, FROM_ICP
+
+
+def _fallback(prior: np.ndarray, reason: str, start: float) -> RelativePose:
+    return RelativePose(np.array(prior, dtype=np.float64), FROM_CONSTANT_VELOCITY, weak=True, reason=reason,
+                        seconds=time.perf_counter() - start)
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def chain_poses(relatives: list[np.ndarray]) -> np.ndarray:
+    """Camera-to-world poses from transforms camera t -> t+1; the first camera is the world frame."""
+    poses = [np.eye(4)]
+    for T in relatives:
+        poses.append(poses[-1] @ invert(T))
+    return np.stack(poses)
+
+
+def fuse_points(sequence, poses: np.ndarray, config: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """World points and colours of all frames' reliable depth, voxel-downsampled to ``voxel_size_m``."""
+    K = sequence.intrinsics.K()
+    fused = o3d.geometry.PointCloud()
+    for i, pose in enumerate(poses):
+        depth = sequence.depth(i)
+        mask = reliable_depth_mask(depth, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+        cloud = depth_cloud(depth, K, mask, sequence.color(i)).transform(pose)
+        fused += cloud.voxel_down_sample(config.voxel_size_m)
+        fused = fused.voxel_down_sample(config.voxel_size_m)
+    return np.asarray(fused.points), np.asarray(fused.colors)
+
+
+def flow_provider(sequence, config: PoseConfig) -> FlowProvider:
+    """Precomputed flows when ``flow_dir`` is set (checked now), else DIS."""
+    if config.flow_dir:
+        provider = FileFlow(config.flow_dir, list(sequence.names))
+        provider.check()
+        return provider
+    return DISFlow(sequence, config.flow_preset)
+
+
+def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
+             progress: Callable[[int, int], None] | None = None) -> PoseResult:
+    """Stage 1 over a whole sequence, resuming from cached pairs; writes OUT/pose/ (see module doc)."""
+    n = len(sequence)
+    if n < 2:
+        raise InputError(getattr(sequence, "root", None), f"sequence has {n} frame(s)", "give at least two frames")
+    pose_dir = Path(out_dir) / "pose"
+    pair_dir = pose_dir / "pairs"
+    pair_dir.mkdir(parents=True, exist_ok=True)
+    write_config(pose_dir / "config.toml", {"pose": config})
+    provider = flow_provider(sequence, config)
+    K = sequence.intrinsics.K()
+    key = config.pair_key()
+    relatives: list[RelativePose] = []
+    for k in range(n - 1):
+        relative = _load_pair(pair_dir / f"{k:06d}.json", key)
+        if relative is None:
+            prior = relatives[-1].transform if relatives else np.eye(4)
+            relative = _estimate_pair(sequence, provider, k, K, config, prior)
+            write_text(pair_dir / f"{k:06d}.json", json.dumps({"config_key": key, **relative.to_dict()}) + "\n")
+        relatives.append(relative)
+        if progress is not None:
+            progress(k + 1, n - 1)
+
+    poses = chain_poses([r.transform for r in relatives])
+    pairs = [_pair_record(k, sequence.names, r) for k, r in enumerate(relatives)]
+    result = PoseResult(poses, pairs)
+    paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
+    write_tum(paths["trajectory"], np.asarray(sequence.timestamps), poses, header="taichi-gs stage 1, camera-to-world")
+    write_text(paths["pairs"], json.dumps({"summary": result.summary(), "pairs": pairs}, indent=1) + "\n")
+    points, colors = fuse_points(sequence, poses, config)
+    write_point_cloud(paths["points"], points, colors)
+    result.paths = paths
+    return result
+
+
+def _estimate_pair(sequence, provider: FlowProvider, k: int, K: np.ndarray, config: PoseConfig, prior: np.ndarray) -> RelativePose:
+    """One pair, never raising for numerical trouble: failures become weak constant-velocity pairs."""
+    start = time.perf_counter()
+    try:
+        forward = provider.flow(k, k + 1)
+        backward = provider.flow(k + 1, k)
+        return estimate_relative_pose(sequence.color(k), sequence.depth(k), sequence.color(k + 1), sequence.depth(k + 1),
+                                      K, forward, config, backward_flow=backward, prior=prior)
+    except InputError:
+        raise
+    except Exception as err:  # one bad pair must not end the run; the reason is recorded
+        return _fallback(prior, f"{type(err).__name__}: {err}", start)
+
+
+def _load_pair(path: Path, key: str) -> RelativePose | None:
+    """A cached pair computed with the same settings, or None."""
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        return RelativePose.from_dict(data) if data.get("config_key") == key else None
+    except (ValueError, KeyError, TypeError):
+        return None
+
+
+def _pair_record(k: int, names: list[str], r: RelativePose) -> dict:
+    record = {"index": k, "source": names[k], "target": names[k + 1]}
+    record.update({key: value for key, value in r.to_dict().items() if key not in ("transform", "flow_transform")})
+    return record

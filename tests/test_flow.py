@@ -1,0 +1,77 @@
+"""Optical flow: file formats, precomputed-flow folders, forward-backward check, DIS accuracy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_pose_scene import MOTION, exact_flow, pair
+
+from taichi_gs.errors import InputError
+from taichi_gs.flow import FileFlow, dis_flow, forward_backward_mask, read_flow, to_gray_u8, write_flow
+
+
+def random_flow(h: int = 12, w: int = 17, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).normal(0, 3, (h, w, 2)).astype(np.float32)
+
+
+@pytest.mark.parametrize("suffix", [".flo", ".npy"])
+def test_flow_files_round_trip(tmp_path, suffix):
+    flow = random_flow()
+    write_flow(tmp_path / f"f{suffix}", flow)
+    back = read_flow(tmp_path / f"f{suffix}")
+    assert back.dtype == np.float32 and back.shape == flow.shape
+    np.testing.assert_array_equal(back, flow)
+
+
+def test_flo_layout_is_middlebury(tmp_path):
+    flow = random_flow(3, 5)
+    write_flow(tmp_path / "f.flo", flow)
+    data = (tmp_path / "f.flo").read_bytes()
+    assert np.frombuffer(data[:4], "<f4")[0] == 202021.25
+    assert tuple(np.frombuffer(data[4:12], "<i4")) == (5, 3)
+    assert np.frombuffer(data[12:20], "<f4")[0] == flow[0, 0, 0]
+
+
+def test_truncated_flo_is_an_input_error(tmp_path):
+    write_flow(tmp_path / "f.flo", random_flow())
+    (tmp_path / "f.flo").write_bytes((tmp_path / "f.flo").read_bytes()[:-8])
+    with pytest.raises(InputError, match="size"):
+        read_flow(tmp_path / "f.flo")
+
+
+def test_file_flow_finds_index_and_stem_names_and_optional_backward(tmp_path):
+    names = ["a", "b", "c"]
+    write_flow(tmp_path / "000000.flo", random_flow(seed=1))
+    write_flow(tmp_path / "b.npy", random_flow(seed=2))
+    write_flow(tmp_path / "b_backward.npy", random_flow(seed=3))
+    provider = FileFlow(tmp_path, names)
+    provider.check()
+    np.testing.assert_array_equal(provider.flow(0, 1), random_flow(seed=1))
+    np.testing.assert_array_equal(provider.flow(1, 2), random_flow(seed=2))
+    np.testing.assert_array_equal(provider.flow(2, 1), random_flow(seed=3))
+    assert provider.flow(1, 0) is None
+
+
+def test_file_flow_check_names_the_missing_pair(tmp_path):
+    write_flow(tmp_path / "000000.flo", random_flow())
+    with pytest.raises(InputError, match="pair 1"):
+        FileFlow(tmp_path, ["a", "b", "c"]).check()
+
+
+def test_forward_backward_mask_rejects_inconsistent_flow():
+    forward = np.zeros((20, 30, 2), np.float32)
+    forward[..., 0] = 3.0
+    backward = -forward.copy()
+    backward[5:10, 10:20] = [4.0, -2.0]  # reached from forward pixels in columns 7..16
+    mask = forward_backward_mask(forward, backward)
+    assert mask[15, 5] and mask[15, 20]
+    assert not mask[7, 10]
+    assert not mask[:, -3:].any()  # forward flow leaves the image
+    assert mask.mean() > 0.7
+
+
+def test_dis_flow_is_subpixel_on_the_test_scene():
+    color_t, depth_t, color_t1, _, K = pair(MOTION, 320, 240)
+    flow = dis_flow(to_gray_u8(color_t), to_gray_u8(color_t1), "medium")
+    error = np.linalg.norm(flow - exact_flow(depth_t, K, MOTION), axis=-1)
+    assert np.median(error[20:-20, 20:-20]) < 0.3
