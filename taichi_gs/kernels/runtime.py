@@ -38,7 +38,7 @@ def cuda_available() -> bool:
     try:
         from taichi._lib import core as _ti_core
 
-        return bool(_ti_core.with_cuda()) and _has_nvidia_driver()
+        return _has_nvidia_driver() and bool(_ti_core.with_cuda())
     except Exception:  # pragma: no cover - depends on the taichi build
         return False
 

@@ -1,0 +1,132 @@
+"""Rasterizer benchmark: forward and forward+backward times (median after warm-up) over scene
+sizes and resolutions, a per-phase breakdown, and the NumPy reference renderer on a small scene
+in the same run (so the speed ratio survives a noisy, shared machine).
+
+    /work/venv/bin/python bench/raster.py [--arch cpu|cuda] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from taichi_gs.kernels import runtime  # noqa: E402
+
+SIZES = (5_000, 50_000, 200_000)
+RESOLUTIONS = ((160, 120), (320, 240), (640, 480))
+# The performance targets: forward+backward under 20 ms and under 400 ms on 2 CPU cores.
+TARGETS = ((5_000, (160, 120)), (100_000, (320, 240)))
+QUICK = ((50_000, (320, 240)), (200_000, (640, 480)))
+
+
+def scene(n: int, width: int, height: int, seed: int = 0):
+    """n Gaussians filling the view frustum at depth 2..8, each a few pixels across."""
+    rng = np.random.default_rng(seed)
+    fx = 0.8 * width
+    K = np.array([[fx, 0, width / 2], [0, fx, height / 2], [0, 0, 1.0]])
+    z = rng.uniform(2.0, 8.0, n)
+    u = rng.uniform(-0.05, 1.05, n) * width
+    v = rng.uniform(-0.05, 1.05, n) * height
+    means = np.stack([(u - K[0, 2]) / fx * z, (v - K[1, 2]) / fx * z, z], axis=1)
+    # screen sigma 0.5..1.5 px at 320x240 for 50k Gaussians, scaled so that the summed 3-sigma
+    # footprints cover every pixel about 25 times whatever n and the resolution
+    sigma_px = rng.uniform(0.5, 1.5, (n, 1)) * np.sqrt(50_000 / n) * width / 320
+    log_scales = np.log(sigma_px * z[:, None] / fx * rng.uniform(0.5, 1.5, (n, 3)))
+    quats = rng.normal(size=(n, 4))
+    logits = rng.normal(size=n)
+    colors = rng.normal(size=(n, 1, 3)) * 0.5
+    return [means, quats, log_scales, logits, colors], K
+
+
+def cpu_model() -> str:
+    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
+        if line.startswith("model name"):
+            return line.split(":", 1)[1].strip()
+    return platform.processor() or "unknown"
+
+
+def median_time(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--arch", default="cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--quick", action="store_true", help="only the target and a few large combos")
+    args = parser.parse_args()
+    backend = runtime.init(args.arch)
+
+    import reference_renderer
+    import taichi as ti
+
+    from taichi_gs.kernels.splat import to_device
+    from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
+
+    print(f"# {datetime.date.today()}  arch={backend.arch}  cpu threads={backend.cpu_threads}  "
+          f"cpu {cpu_model()}  python {platform.python_version()}")
+    print("# times in ms, median after warm-up; SH degree 0; cover = mean number of Gaussian support "
+          "boxes per pixel")
+    rast = Rasterizer(ti.f32)
+    print(f"{'N':>8} {'res':>8} {'slots':>9} {'fwd ms':>8} {'fwd+bwd ms':>11} {'project':>8} {'sort':>7} "
+          f"{'blend':>7} {'backward':>9} {'cover':>6}")
+    grid = [(n, res) for n in SIZES for res in RESOLUTIONS]
+    combos = sorted(set(TARGETS) | set(QUICK if args.quick else grid))
+    for n, (width, height) in combos:
+        params, K = scene(n, width, height)
+        gs = DeviceGaussians.from_numpy(*params)
+        cam = Camera(K, np.eye(4), width, height)
+        d_rgb = to_device(np.random.default_rng(1).normal(size=(height, width, 3)), ti.f32)
+        d_depth = to_device(np.random.default_rng(2).normal(size=(height, width)), ti.f32)
+
+        def forward():
+            rast.forward(gs, cam)
+            ti.sync()
+
+        def forward_backward():
+            view = rast.forward(gs, cam)
+            rast.backward(gs, view, d_rgb, d_depth)
+
+        repeats = 15 if n * width < 50_000 * 640 else 5
+        t_fwd = median_time(forward, repeats)
+        t_all = median_time(forward_backward, repeats)
+        phases: dict = {}
+        for _ in range(3):
+            view = rast.forward(gs, cam, timings=phases)
+            t0 = time.perf_counter()
+            rast.backward(gs, view, d_rgb, d_depth)
+            phases["backward"] = phases.get("backward", 0.0) + time.perf_counter() - t0
+        ms = {k: 1e3 * v / 3 for k, v in phases.items()}
+        rect = view.rect.to_numpy()[:n]
+        box = np.clip(rect[:, 2] - rect[:, 0] + 1, 0, None) * np.clip(rect[:, 3] - rect[:, 1] + 1, 0, None)
+        cover = box.sum() / (width * height)
+        print(f"{n:>8} {width}x{height:<4} {view.n_slots:>9} {1e3 * t_fwd:>8.1f} {1e3 * t_all:>11.1f} "
+              f"{ms['project']:>8.1f} {ms['sort']:>7.1f} {ms['blend']:>7.1f} {ms['backward']:>9.1f} {cover:>6.1f}",
+              flush=True)
+
+    # same small scene through the NumPy reference renderer and the Taichi forward
+    params, K = scene(500, 160, 120)
+    gs = DeviceGaussians.from_numpy(*params)
+    cam = Camera(K, np.eye(4), 160, 120)
+    t_ref = median_time(lambda: reference_renderer.render(*params, K, np.eye(4), 160, 120), 3)
+    t_ti = median_time(lambda: (rast.forward(gs, cam), ti.sync()), 15)
+    print(f"reference (NumPy, per-pixel, 500 Gaussians, 160x120): {1e3 * t_ref:.1f} ms; "
+          f"taichi forward {1e3 * t_ti:.2f} ms; ratio {t_ref / t_ti:.0f}x")
+
+
+if __name__ == "__main__":
+    main()

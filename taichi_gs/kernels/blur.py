@@ -1,0 +1,35 @@
+"""Blur model: a blurred frame is the mean of k sharp renders; its backward hands each render
+``dL/dblur / k``."""
+
+import functools
+from collections.abc import Sequence
+from types import SimpleNamespace
+
+import taichi as ti
+
+
+@functools.cache
+def _kernels(dt) -> SimpleNamespace:
+    @ti.kernel
+    def scale_add(dst: ti.types.ndarray(dtype=dt), src: ti.types.ndarray(dtype=dt), scale: dt, keep: dt):
+        for I in ti.grouped(dst):
+            dst[I] = keep * dst[I] + scale * src[I]
+
+    return SimpleNamespace(scale_add=scale_add)
+
+
+def average(views: Sequence[ti.Ndarray], out: ti.Ndarray) -> ti.Ndarray:
+    """Write the mean of the k same-shaped images ``views`` into ``out`` and return it."""
+    if not views:
+        raise ValueError("need at least one view to average")
+    for i, img in enumerate(views):
+        if img.shape != out.shape:
+            raise ValueError(f"view {i} has shape {img.shape}, expected {out.shape}")
+        _kernels(out.dtype).scale_add(out, img, 1.0 / len(views), 0.0 if i == 0 else 1.0)
+    return out
+
+
+def spread(grad_blurred: ti.Ndarray, k: int, out: ti.Ndarray) -> ti.Ndarray:
+    """Gradient of each of the k averaged views: ``out = grad_blurred / k`` (share it across views)."""
+    _kernels(out.dtype).scale_add(out, grad_blurred, 1.0 / k, 0.0)
+    return out

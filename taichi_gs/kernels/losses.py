@@ -1,0 +1,211 @@
+"""Image and regularisation losses with their gradients, on device.
+
+Each function returns the loss value (a Python float) and ADDS ``weight * dL/d(input)`` into the
+given gradient ndarray, so several terms can share one gradient buffer before a backward pass.
+- :func:`l1`: mean over pixels and channels of ``|pred - target|`` (H, W, C).
+- :func:`masked_depth_l1`: mean over pixels with ``target > 0`` of ``|pred - target|`` (H, W).
+- :func:`dssim`: ``1 - mean SSIM`` with an 11x11 Gaussian window (sigma 1.5, zero padding),
+  C1 = 0.01^2, C2 = 0.03^2, as 3DGS; gradient w.r.t. ``pred`` only.
+- :func:`opacity_binarization`: ``sum_j o_j^2 (1 - o_j)^2`` with ``o = sigmoid(logit)``,
+  gradient w.r.t. the logits.
+Reductions go row-wise then serially, so values are deterministic.
+"""
+
+import functools
+import math
+from types import SimpleNamespace
+
+import taichi as ti
+
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+SSIM_RADIUS = 5
+SSIM_SIGMA = 1.5
+
+
+def _window() -> list[float]:
+    w = [math.exp(-((i - SSIM_RADIUS) ** 2) / (2 * SSIM_SIGMA**2)) for i in range(2 * SSIM_RADIUS + 1)]
+    return [x / sum(w) for x in w]
+
+
+WINDOW = _window()
+
+
+@functools.cache
+def _kernels(dt) -> SimpleNamespace:
+    fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
+
+    @ti.kernel
+    def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, rows: fnd(1)) -> dt:
+        h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
+        scale = weight / (h * w * c)
+        for v in range(h):
+            acc = ti.cast(0.0, dt)
+            for u, k in ti.ndrange(w, c):
+                diff = pred[v, u, k] - target[v, u, k]
+                acc += ti.abs(diff)
+                grad[v, u, k] = grad[v, u, k] + scale * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
+            rows[v] = acc
+        total = ti.cast(0.0, dt)
+        ti.loop_config(serialize=True)
+        for v in range(h):
+            total += rows[v]
+        return total / (h * w * c)
+
+    @ti.kernel
+    def masked_depth_l1(pred: fnd(2), target: fnd(2), grad: fnd(2), weight: dt, rows: fnd(2)) -> dt:
+        h, w = pred.shape[0], pred.shape[1]
+        for v in range(h):
+            acc = ti.cast(0.0, dt)
+            count = ti.cast(0.0, dt)
+            for u in range(w):
+                if target[v, u] > 0:
+                    acc += ti.abs(pred[v, u] - target[v, u])
+                    count += 1.0
+            rows[v, 0] = acc
+            rows[v, 1] = count
+        total = ti.cast(0.0, dt)
+        count = ti.cast(0.0, dt)
+        ti.loop_config(serialize=True)
+        for v in range(h):
+            total += rows[v, 0]
+            count += rows[v, 1]
+        count = ti.max(count, 1.0)
+        for v, u in ti.ndrange(h, w):
+            if target[v, u] > 0:
+                diff = pred[v, u] - target[v, u]
+                grad[v, u] = grad[v, u] + weight / count * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
+        return total / count
+
+    @ti.func
+    def blur_row(src: ti.template(), v, u, k, q: ti.template(), w):
+        acc = ti.Vector.zero(dt, q)
+        for i in ti.static(range(2 * SSIM_RADIUS + 1)):
+            x = u + i - SSIM_RADIUS
+            if 0 <= x < w:
+                for j in ti.static(range(q)):
+                    acc[j] += dt(WINDOW[i]) * src[v, x, k, j]
+        return acc
+
+    @ti.func
+    def blur_col(src: ti.template(), v, u, k, q: ti.template(), h):
+        acc = ti.Vector.zero(dt, q)
+        for i in ti.static(range(2 * SSIM_RADIUS + 1)):
+            y = v + i - SSIM_RADIUS
+            if 0 <= y < h:
+                for j in ti.static(range(q)):
+                    acc[j] += dt(WINDOW[i]) * src[y, u, k, j]
+        return acc
+
+    @ti.kernel
+    def dssim(
+        pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt,
+        stats: fnd(4), moments: fnd(4), partial: fnd(4), rows: fnd(1),
+    ) -> dt:
+        h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
+        for v, u, k in ti.ndrange(h, w, c):
+            x, y = pred[v, u, k], target[v, u, k]
+            stats[v, u, k, 0] = x
+            stats[v, u, k, 1] = y
+            stats[v, u, k, 2] = x * x
+            stats[v, u, k, 3] = y * y
+            stats[v, u, k, 4] = x * y
+        for v, u, k in ti.ndrange(h, w, c):
+            m = blur_row(stats, v, u, k, 5, w)
+            for j in ti.static(range(5)):
+                moments[v, u, k, j] = m[j]
+        scale = -weight / (h * w * c)
+        for v in range(h):
+            acc = ti.cast(0.0, dt)
+            for u, k in ti.ndrange(w, c):
+                m = blur_col(moments, v, u, k, 5, h)
+                mu1, mu2 = m[0], m[1]
+                s11, s22, s12 = m[2] - mu1 * mu1, m[3] - mu2 * mu2, m[4] - mu1 * mu2
+                a1, a2 = 2 * mu1 * mu2 + dt(SSIM_C1), 2 * s12 + dt(SSIM_C2)
+                b1, b2 = mu1 * mu1 + mu2 * mu2 + dt(SSIM_C1), s11 + s22 + dt(SSIM_C2)
+                ssim = a1 * a2 / (b1 * b2)
+                acc += ssim
+                # dSSIM / d(mu1, E[x^2], E[xy]) scaled by dL/dSSIM
+                partial[v, u, k, 0] = scale * (2 * mu2 * (a2 - a1) / (b1 * b2) - 2 * mu1 * ssim * (1 / b1 - 1 / b2))
+                partial[v, u, k, 1] = scale * (-ssim / b2)
+                partial[v, u, k, 2] = scale * (2 * a1 / (b1 * b2))
+            rows[v] = acc
+        for v, u, k in ti.ndrange(h, w, c):
+            m = blur_row(partial, v, u, k, 3, w)
+            for j in ti.static(range(3)):
+                stats[v, u, k, j] = m[j]
+        for v, u, k in ti.ndrange(h, w, c):
+            m = blur_col(stats, v, u, k, 3, h)
+            grad[v, u, k] = grad[v, u, k] + m[0] + 2 * pred[v, u, k] * m[1] + target[v, u, k] * m[2]
+        total = ti.cast(0.0, dt)
+        ti.loop_config(serialize=True)
+        for v in range(h):
+            total += rows[v]
+        return 1.0 - total / (h * w * c)
+
+    @ti.kernel
+    def opacity_binarization(logits: fnd(1), grad: fnd(1), n: ti.i32, weight: dt, rows: fnd(1)) -> dt:
+        n_chunks = (n + 1023) // 1024
+        for chunk in range(n_chunks):
+            acc = ti.cast(0.0, dt)
+            for i in range(chunk * 1024, ti.min(n, chunk * 1024 + 1024)):
+                o = 1.0 / (1.0 + ti.exp(-logits[i]))
+                acc += o * o * (1 - o) * (1 - o)
+                grad[i] = grad[i] + weight * 2 * o * (1 - o) * (1 - 2 * o) * o * (1 - o)
+            rows[chunk] = acc
+        total = ti.cast(0.0, dt)
+        ti.loop_config(serialize=True)
+        for chunk in range(n_chunks):
+            total += rows[chunk]
+        return total
+
+    return SimpleNamespace(
+        l1=l1, masked_depth_l1=masked_depth_l1, dssim=dssim, opacity_binarization=opacity_binarization
+    )
+
+
+_scratch: dict[tuple, ti.Ndarray] = {}
+
+
+def _buffer(name: str, dtype, shape: tuple) -> ti.Ndarray:
+    key = (name, dtype, shape)
+    if key not in _scratch:
+        _scratch[key] = ti.ndarray(dtype, shape)
+    return _scratch[key]
+
+
+def _checked(pred, target, grad):
+    if pred.shape != target.shape or pred.shape != grad.shape:
+        raise ValueError(f"shape mismatch: pred {pred.shape}, target {target.shape}, grad {grad.shape}")
+    return pred.dtype
+
+
+def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
+    """Mean absolute error of (H, W, C) images; adds ``weight * dL/dpred`` to ``grad``."""
+    dt = _checked(pred, target, grad)
+    return float(_kernels(dt).l1(pred, target, grad, weight, _buffer("rows", dt, (pred.shape[0],))))
+
+
+def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
+    """Mean ``|pred - target|`` over pixels with target > 0 of (H, W) depth maps; adds to ``grad``."""
+    dt = _checked(pred, target, grad)
+    return float(_kernels(dt).masked_depth_l1(pred, target, grad, weight, _buffer("rows2", dt, (pred.shape[0], 2))))
+
+
+def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
+    """``1 - SSIM`` of (H, W, C) images (3DGS window and constants); adds ``weight * dL/dpred``."""
+    dt = _checked(pred, target, grad)
+    h, w, c = pred.shape
+    return float(
+        _kernels(dt).dssim(
+            pred, target, grad, weight, _buffer("stats", dt, (h, w, c, 5)), _buffer("moments", dt, (h, w, c, 5)),
+            _buffer("partial", dt, (h, w, c, 3)), _buffer("rows", dt, (h,)),
+        )
+    )
+
+
+def opacity_binarization(logits: ti.Ndarray, grad: ti.Ndarray, n: int, weight: float = 1.0) -> float:
+    """``sum o^2 (1 - o)^2`` over the first n logits; adds ``weight * dL/dlogit`` to ``grad``."""
+    dt = logits.dtype
+    rows = _buffer("chunks", dt, (max(1, -(-n // 1024)),))
+    return float(_kernels(dt).opacity_binarization(logits, grad, n, weight, rows))

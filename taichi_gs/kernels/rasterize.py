@@ -1,0 +1,256 @@
+"""Front-to-back alpha blending of one 16x16 tile, and its hand-written backward.
+
+One thread per tile walks the tile's depth-sorted list (records gathered in that order, so reads
+are sequential); for each Gaussian it visits only the pixels of its support ellipse, row by row
+(so work follows covered pixels, not tile area). Per pixel:
+``alpha = min(0.99, o exp(power))``, skipped below 1/255 or beyond the support cut-off; blending
+stops (without the Gaussian that would do it) once transmittance would fall under 1e-4, as in
+3DGS. Outputs: colour ``sum T_i a_i c_i + T bg``, depth ``sum T_i a_i z_i`` (not normalised),
+alpha ``1 - T``, and the local index of the last contributor for the backward replay.
+
+The backward replays each tile back to front from the stored final transmittance, recovering
+``T_i = T_{i+1} / (1 - a_i)``, and writes per-slot gradients of (mean2d, conic, depth, opacity,
+colour) — single writer per slot, no atomics.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import taichi as ti
+
+from .project import (
+    ALPHA_MIN,
+    P_COLOR,
+    P_CONIC_A,
+    P_CONIC_B,
+    P_CONIC_C,
+    P_CUTOFF,
+    P_DEPTH,
+    P_MEAN_X,
+    P_MEAN_Y,
+    P_OPACITY,
+    P_WIDTH,
+)
+from .tiles import TILE
+
+Array = ti.template()  # an ndarray argument of a ti.func (passed by reference)
+
+# A tile-ordered entry record: the projection's screen record (columns 0..P_WIDTH-1) followed by the
+# Gaussian's pixel box u0, v0, u1, v1, gathered once after sorting so blending reads sequentially.
+E_BOX = P_WIDTH
+E_WIDTH = P_WIDTH + 4
+MAX_ALPHA = 0.99
+MIN_TRANSMITTANCE = 1e-4
+# Columns of a slot's gradient record (same order as the projection's screen record).
+N_SLOT_GRADS = 10
+# Per-pixel forward state: transmittance (negated once finished), colour, depth, last contributor.
+F_TRANS, F_RGB, F_DEPTH, F_LAST = 0, 1, 4, 5
+F_WIDTH = 6
+# Per-pixel backward state: final T, running T, colour + depth behind, d(rgb, depth, alpha), last.
+B_FINAL, B_TRANS, B_BEHIND, B_GRAD, B_LAST = 0, 1, 2, 6, 11
+B_WIDTH = 12
+
+
+@functools.cache
+def make(dt) -> SimpleNamespace:
+    """Tile blending funcs for float type ``dt``."""
+    vec3 = ti.types.vector(3, dt)
+
+    @ti.func
+    def tile_pixels(t, tiles_x, width, height):
+        x0 = (t % tiles_x) * TILE
+        y0 = (t // tiles_x) * TILE
+        return ti.Vector([x0, y0, ti.min(x0 + TILE, width) - 1, ti.min(y0 + TILE, height) - 1])
+
+    @ti.func
+    def gather_entry(j, order: Array, slot_gid: Array, proj: Array, rect: Array,
+                     entries: Array):
+        """Copy the screen record and pixel box of the Gaussian behind sorted entry j."""
+        g = slot_gid[order[j]]
+        for c in ti.static(range(P_WIDTH)):
+            entries[j, c] = proj[g, c]
+        for c in ti.static(range(4)):
+            entries[j, E_BOX + c] = ti.cast(rect[g, c], dt)
+
+    @ti.func
+    def screen_gaussian(entries: Array, j):
+        """(mean x, mean y, conic a, b, c) of entry j."""
+        return ti.Vector(
+            [entries[j, P_MEAN_X], entries[j, P_MEAN_Y], entries[j, P_CONIC_A], entries[j, P_CONIC_B],
+             entries[j, P_CONIC_C]], dt=dt
+        )
+
+    @ti.func
+    def entry_box(entries: Array, j, box):
+        """Entry j's pixel box clipped to the tile box (u0, v0, u1, v1)."""
+        return ti.Vector([
+            ti.max(ti.cast(entries[j, E_BOX], ti.i32), box[0]),
+            ti.max(ti.cast(entries[j, E_BOX + 1], ti.i32), box[1]),
+            ti.min(ti.cast(entries[j, E_BOX + 2], ti.i32), box[2]),
+            ti.min(ti.cast(entries[j, E_BOX + 3], ti.i32), box[3]),
+        ])
+
+    @ti.func
+    def splat_at(sg, u, v):
+        """(power, dx, dy) of screen Gaussian sg at pixel (u, v); d = mean - pixel centre."""
+        dx = sg[0] - (u + 0.5)
+        dy = sg[1] - (v + 0.5)
+        power = -0.5 * (sg[2] * dx * dx + sg[4] * dy * dy) - sg[3] * dx * dy
+        return ti.Vector([power, dx, dy], dt=dt)
+
+    @ti.func
+    def row_span(sg, cutoff, v, u_min, u_max):
+        """Pixel columns [lo, hi] of row v that may satisfy power >= cutoff (the ellipse's chord,
+        widened by 1e-3 px so rounding never drops a pixel), clipped to [u_min, u_max]."""
+        dy = sg[1] - (v + 0.5)
+        a, b, c = sg[2], sg[3], sg[4]
+        disc = b * b * dy * dy - a * (c * dy * dy + 2.0 * cutoff)
+        lo, hi = u_max + 1, u_max
+        if disc >= 0.0:
+            root = ti.sqrt(disc)
+            centre = sg[0] - 0.5 + b * dy / a
+            lo_f = ti.max(ti.ceil(centre - root / a - 1e-3), ti.cast(u_min, dt))
+            hi_f = ti.min(ti.floor(centre + root / a + 1e-3), ti.cast(u_max, dt))
+            if lo_f <= hi_f:
+                lo, hi = ti.cast(lo_f, ti.i32), ti.cast(hi_f, ti.i32)
+        return lo, hi
+
+    @ti.func
+    def blend_tile_forward(
+        t, tiles_x, width, height, tile_start: Array, entries: Array, bg,
+        state: Array, out_rgb: Array, out_depth: Array, out_trans: Array,
+        out_last: Array,
+    ):
+        """Blend tile t front to back. ``state[v, u]`` holds the running (T, r, g, b, depth,
+        last) of the pixel, T negated once the pixel is finished."""
+        box = tile_pixels(t, tiles_x, width, height)
+        for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
+            state[v, u, F_TRANS] = 1.0
+            for c in ti.static(range(1, F_WIDTH)):
+                state[v, u, c] = 0.0
+            state[v, u, F_LAST] = -1.0
+        active = (box[2] - box[0] + 1) * (box[3] - box[1] + 1)
+        start = tile_start[t]
+        for j in range(start, tile_start[t + 1]):
+            if active == 0:
+                break
+            eb = entry_box(entries, j, box)
+            opacity = entries[j, P_OPACITY]
+            cutoff = entries[j, P_CUTOFF]
+            depth = entries[j, P_DEPTH]
+            color = vec3(entries[j, P_COLOR], entries[j, P_COLOR + 1], entries[j, P_COLOR + 2])
+            sg = screen_gaussian(entries, j)
+            local = ti.cast(j - start, dt)
+            for v in range(eb[1], eb[3] + 1):
+                lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
+                for u in range(lo, hi + 1):
+                    trans = state[v, u, F_TRANS]
+                    if trans > 0.0:
+                        power = splat_at(sg, u, v)[0]
+                        if power >= cutoff:
+                            alpha = ti.min(dt(MAX_ALPHA), opacity * ti.exp(power))
+                            if alpha >= dt(ALPHA_MIN):
+                                next_trans = trans * (1.0 - alpha)
+                                if next_trans < dt(MIN_TRANSMITTANCE):
+                                    state[v, u, F_TRANS] = -trans
+                                    active -= 1
+                                else:
+                                    w = alpha * trans
+                                    for c in ti.static(range(3)):
+                                        state[v, u, F_RGB + c] = state[v, u, F_RGB + c] + w * color[c]
+                                    state[v, u, F_DEPTH] = state[v, u, F_DEPTH] + w * depth
+                                    state[v, u, F_TRANS] = next_trans
+                                    state[v, u, F_LAST] = local
+        for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
+            trans = ti.abs(state[v, u, F_TRANS])
+            for c in ti.static(range(3)):
+                out_rgb[v, u, c] = state[v, u, F_RGB + c] + trans * bg[c]
+            out_depth[v, u] = state[v, u, F_DEPTH]
+            out_trans[v, u] = trans
+            out_last[v, u] = ti.cast(state[v, u, F_LAST], ti.i32)
+
+    @ti.func
+    def blend_tile_backward(
+        t, tiles_x, width, height, tile_start: Array, order: Array, entries: Array, bg,
+        out_trans: Array, out_last: Array, d_rgb: Array, d_depth: Array,
+        d_alpha: Array, state: Array, slot_grad: Array,
+    ):
+        """Write dL/d(screen record) of every slot of tile t into slot_grad[slot, :]. ``state[v, u]``
+        packs the pixel's final T, running T, colour/depth accumulated behind, its image
+        gradients and last contributor (see the B_* columns)."""
+        box = tile_pixels(t, tiles_x, width, height)
+        last = -1
+        for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
+            state[v, u, B_FINAL] = out_trans[v, u]
+            state[v, u, B_TRANS] = out_trans[v, u]
+            for c in ti.static(range(4)):
+                state[v, u, B_BEHIND + c] = 0.0
+            for c in ti.static(range(3)):
+                state[v, u, B_GRAD + c] = d_rgb[v, u, c]
+            state[v, u, B_GRAD + 3] = d_depth[v, u]
+            state[v, u, B_GRAD + 4] = d_alpha[v, u]
+            state[v, u, B_LAST] = ti.cast(out_last[v, u], dt)
+            last = ti.max(last, out_last[v, u])
+        start = tile_start[t]
+        for j in range(start + last + 1, tile_start[t + 1]):
+            for c in ti.static(range(N_SLOT_GRADS)):
+                slot_grad[order[j], c] = 0.0
+        for k in range(last + 1):
+            jj = last - k
+            j = start + jj
+            eb = entry_box(entries, j, box)
+            opacity = entries[j, P_OPACITY]
+            cutoff = entries[j, P_CUTOFF]
+            depth = entries[j, P_DEPTH]
+            sg = screen_gaussian(entries, j)
+            ca, cb, cc = sg[2], sg[3], sg[4]
+            color = vec3(entries[j, P_COLOR], entries[j, P_COLOR + 1], entries[j, P_COLOR + 2])
+            local = ti.cast(jj, dt)
+            acc = ti.Vector.zero(dt, N_SLOT_GRADS)
+            for v in range(eb[1], eb[3] + 1):
+                lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
+                for u in range(lo, hi + 1):
+                    if local <= state[v, u, B_LAST]:
+                        s = splat_at(sg, u, v)
+                        power = s[0]
+                        if power >= cutoff:
+                            gauss = ti.exp(power)
+                            alpha = ti.min(dt(MAX_ALPHA), opacity * gauss)
+                            if alpha >= dt(ALPHA_MIN):
+                                final_trans = state[v, u, B_FINAL]
+                                inv_keep = 1.0 / (1.0 - alpha)  # T_i = T_{i+1} / (1 - alpha_i)
+                                trans = state[v, u, B_TRANS] * inv_keep
+                                w = alpha * trans
+                                g_rgb = vec3(state[v, u, B_GRAD], state[v, u, B_GRAD + 1], state[v, u, B_GRAD + 2])
+                                g_depth = state[v, u, B_GRAD + 3]
+                                behind = vec3(
+                                    state[v, u, B_BEHIND], state[v, u, B_BEHIND + 1], state[v, u, B_BEHIND + 2]
+                                )
+                                behind_depth = state[v, u, B_BEHIND + 3]
+                                g_alpha = (
+                                    g_rgb.dot(color * trans - (behind + final_trans * bg) * inv_keep)
+                                    + g_depth * (depth * trans - behind_depth * inv_keep)
+                                    + state[v, u, B_GRAD + 4] * final_trans * inv_keep
+                                )
+                                for c in ti.static(range(3)):
+                                    acc[7 + c] += g_rgb[c] * w
+                                    state[v, u, B_BEHIND + c] = behind[c] + color[c] * w
+                                acc[5] += g_depth * w
+                                state[v, u, B_BEHIND + 3] = behind_depth + depth * w
+                                state[v, u, B_TRANS] = trans
+                                if opacity * gauss <= dt(MAX_ALPHA):
+                                    acc[6] += g_alpha * gauss
+                                    g_power = g_alpha * alpha
+                                    dx, dy = s[1], s[2]
+                                    acc[0] += -g_power * (ca * dx + cb * dy)
+                                    acc[1] += -g_power * (cb * dx + cc * dy)
+                                    acc[2] += -0.5 * g_power * dx * dx
+                                    acc[3] += -g_power * dx * dy
+                                    acc[4] += -0.5 * g_power * dy * dy
+            slot = order[j]
+            for c in ti.static(range(N_SLOT_GRADS)):
+                slot_grad[slot, c] = acc[c]
+
+    return SimpleNamespace(
+        gather_entry=gather_entry, blend_tile_forward=blend_tile_forward, blend_tile_backward=blend_tile_backward
+    )

@@ -1,0 +1,445 @@
+"""Device-resident Gaussians and the fused render / backward kernels.
+
+:class:`DeviceGaussians` keeps parameters and gradients in Taichi ndarrays between iterations;
+:class:`Rasterizer` renders a camera into a :class:`View` (its buffers are reused per view index,
+so k views can be alive at once for blur averaging) and back-propagates image gradients into the
+Gaussians' gradient buffers (accumulating, so k views sum) and a 6-vector pose gradient.
+
+Per forward: three kernel launches (project + per-Gaussian slot offsets; binning + per-tile depth
+sort + gather of tile-ordered records; blending) and one scalar read of the intersection count to
+size buffers (grown geometrically, never shrunk; ndarray arguments never trigger recompiles).
+Per backward: one launch (tile replay, per-Gaussian reduction + projection backward, pose sum).
+"""
+
+import functools
+import math
+import time
+from dataclasses import dataclass
+from types import SimpleNamespace
+
+import numpy as np
+import taichi as ti
+
+from . import project, rasterize, runtime, tiles
+from .project import P_WIDTH
+from .rasterize import B_WIDTH, E_WIDTH, F_WIDTH, N_SLOT_GRADS
+from .tiles import TILE
+
+POSE_CHUNK = 1024
+SCAN_CHUNK = 128
+TILE_SPREAD = 64
+
+
+def np_dtype(dtype) -> type:
+    """NumPy float type of a Taichi float type."""
+    return np.float64 if dtype == ti.f64 else np.float32
+
+
+def float_type(precision: str):
+    """Taichi float type of "f32" or "f64"."""
+    return {"f32": ti.f32, "f64": ti.f64}[precision]
+
+
+def to_device(arr: np.ndarray, dtype) -> ti.Ndarray:
+    """A new ndarray of Taichi float type ``dtype`` holding ``arr``."""
+    arr = np.ascontiguousarray(arr, dtype=np_dtype(dtype))
+    nd = ti.ndarray(dtype, arr.shape)
+    nd.from_numpy(arr)
+    return nd
+
+
+@functools.cache
+def _kernels(dt) -> SimpleNamespace:
+    proj_f = project.make(dt)
+    tile_f = tiles.make(dt)
+    blend_f = rasterize.make(dt)
+    mat4 = ti.types.matrix(4, 4, dt)
+    vec4 = ti.types.vector(4, dt)
+    vec3 = ti.types.vector(3, dt)
+    fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
+    ind = lambda ndim: ti.types.ndarray(dtype=ti.i32, ndim=ndim)  # noqa: E731
+    on_cpu = runtime.current() is None or runtime.current().arch == "cpu"
+    # Taichi's CPU backend runs a range-for of a few hundred iterations on one thread, so per-tile
+    # loops iterate over TILE_SPREAD x n_tiles indices and work on every TILE_SPREAD-th one.
+    spread = TILE_SPREAD if on_cpu else 1
+
+    @ti.kernel
+    def project_and_count(
+        means: fnd(2), quats: fnd(2), log_scales: fnd(2), logits: fnd(1), sh: fnd(3), n: ti.i32, n_sh: ti.i32,
+        cam: mat4, intr: vec4, width: ti.i32, height: ti.i32,
+        proj: fnd(2), rect: ind(2), offsets: ind(1), chunk_base: ind(1), isotropic: ti.template(),
+    ):
+        for g in range(n):
+            proj_f.project_one(
+                g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, proj, rect, isotropic
+            )
+        # exclusive prefix sum of the tile counts, in chunks: chunk sums, a short serial scan over
+        # chunks, then each chunk's own scan (parallel on CPU and GPU alike)
+        n_chunks = (n + SCAN_CHUNK - 1) // SCAN_CHUNK
+        for c in range(n_chunks):
+            total = 0
+            for g in range(c * SCAN_CHUNK, ti.min(n, (c + 1) * SCAN_CHUNK)):
+                total += tiles.tile_count(rect, g)
+            chunk_base[c] = total
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            running = 0
+            for c in range(n_chunks):
+                count = chunk_base[c]
+                chunk_base[c] = running
+                running += count
+            offsets[n] = running
+        for c in range(n_chunks):
+            running = chunk_base[c]
+            for g in range(c * SCAN_CHUNK, ti.min(n, (c + 1) * SCAN_CHUNK)):
+                offsets[g] = running
+                running += tiles.tile_count(rect, g)
+
+    @ti.kernel
+    def bin_and_sort(
+        n: ti.i32, n_slots: ti.i32, tiles_x: ti.i32, n_tiles: ti.i32,
+        proj: fnd(2), rect: ind(2), offsets: ind(1),
+        slot_gid: ind(1), slot_tile: ind(1), tile_cursor: ind(1), tile_start: ind(1),
+        keys: fnd(1), order: ind(1), tmp_keys: fnd(1), tmp_order: ind(1), entries: fnd(2),
+    ):
+        for t in range(n_tiles):
+            tile_cursor[t] = 0
+        for g in range(n):
+            tiles.emit_slots(g, rect, offsets, slot_gid, slot_tile, tile_cursor, tiles_x)
+        ti.loop_config(serialize=True)
+        for t in range(n_tiles + 1):
+            if t == 0:
+                tile_start[0] = 0
+            else:
+                tile_start[t] = tile_start[t - 1] + tile_cursor[t - 1]
+                tile_cursor[t - 1] = tile_start[t - 1]
+        for s in range(n_slots):
+            pos = ti.atomic_add(tile_cursor[slot_tile[s]], 1)
+            keys[pos] = proj[slot_gid[s], project.P_DEPTH]
+            order[pos] = s
+        for i in range(n_tiles * spread):
+            if i % spread == 0:
+                t = i // spread
+                tile_f.sort_segment(keys, order, tmp_keys, tmp_order, tile_start[t], tile_start[t + 1])
+        for j in range(n_slots):
+            blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
+
+    @ti.kernel
+    def blend(
+        tiles_x: ti.i32, n_tiles: ti.i32, width: ti.i32, height: ti.i32,
+        tile_start: ind(1), entries: fnd(2), bg: vec3, state: fnd(3),
+        out_rgb: fnd(3), out_depth: fnd(2), out_trans: fnd(2), out_last: ind(2),
+    ):
+        for i in range(n_tiles * spread):
+            if i % spread == 0:
+                blend_f.blend_tile_forward(
+                    i // spread, tiles_x, width, height, tile_start, entries, bg, state,
+                    out_rgb, out_depth, out_trans, out_last,
+                )
+
+    @ti.kernel
+    def backward(
+        n: ti.i32, n_sh: ti.i32, tiles_x: ti.i32, n_tiles: ti.i32, width: ti.i32, height: ti.i32,
+        cam: mat4, intr: vec4, bg: vec3,
+        means: fnd(2), quats: fnd(2), log_scales: fnd(2), logits: fnd(1), sh: fnd(3),
+        offsets: ind(1), tile_start: ind(1), order: ind(1), entries: fnd(2),
+        out_trans: fnd(2), out_last: ind(2), d_rgb: fnd(3), d_depth: fnd(2), d_alpha: fnd(2),
+        state: fnd(3), slot_grad: fnd(2),
+        d_means: fnd(2), d_quats: fnd(2), d_log_scales: fnd(2), d_logits: fnd(1), d_sh: fnd(3),
+        pose_part: fnd(2), pose_chunks: fnd(2), pose_grad: fnd(1), isotropic: ti.template(),
+    ):
+        for i in range(n_tiles * spread):
+            if i % spread == 0:
+                blend_f.blend_tile_backward(
+                    i // spread, tiles_x, width, height, tile_start, order, entries, bg,
+                    out_trans, out_last, d_rgb, d_depth, d_alpha, state, slot_grad,
+                )
+        for g in range(n):
+            pose = ti.Vector.zero(dt, 6)
+            if offsets[g + 1] > offsets[g]:
+                gs = ti.Vector.zero(dt, N_SLOT_GRADS)
+                for s in range(offsets[g], offsets[g + 1]):
+                    for c in ti.static(range(N_SLOT_GRADS)):
+                        gs[c] += slot_grad[s, c]
+                pose = proj_f.project_one_vjp(
+                    g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, gs, isotropic,
+                    d_means, d_quats, d_log_scales, d_logits, d_sh,
+                )
+            for c in ti.static(range(6)):
+                pose_part[g, c] = pose[c]
+        for chunk in range((n + POSE_CHUNK - 1) // POSE_CHUNK):
+            acc = ti.Vector.zero(dt, 6)
+            for g in range(chunk * POSE_CHUNK, ti.min(n, (chunk + 1) * POSE_CHUNK)):
+                for c in ti.static(range(6)):
+                    acc[c] += pose_part[g, c]
+            for c in ti.static(range(6)):
+                pose_chunks[chunk, c] = acc[c]
+        ti.loop_config(serialize=True)
+        for c in range(6):
+            total = ti.cast(0.0, dt)
+            for chunk in range((n + POSE_CHUNK - 1) // POSE_CHUNK):
+                total += pose_chunks[chunk, c]
+            pose_grad[c] = total
+
+    return SimpleNamespace(
+        project_and_count=project_and_count, bin_and_sort=bin_and_sort, blend=blend, backward=backward,
+    )
+
+
+def _grown(arr, need: int, dtype, tail: tuple = ()):
+    """``arr`` if it holds ``need`` rows, else a new ndarray with 1.5x headroom."""
+    if arr is not None and arr.shape[0] >= need:
+        return arr
+    return ti.ndarray(dtype, (max(int(need * 1.5), 16),) + tail)
+
+
+class DeviceGaussians:
+    """Gaussian parameters and their gradients, resident in Taichi ndarrays.
+
+    Shapes: means (N, 3); quats (N, 4) as w x y z (raw, normalised inside the renderer);
+    log_scales (N, 3), or (N, 1) when ``isotropic`` (then scales and rotations are fixed: no
+    gradients are computed for them and quats is a 1-row placeholder); opacity_logits (N,);
+    colors (N, M, 3) SH coefficients, M in {1, 4, 9, 16}, DC first.
+    ``params[name]`` and ``grads[name]`` are the ndarrays; gradients accumulate until
+    :meth:`zero_grad`.
+    """
+
+    def __init__(self, n: int, n_sh: int = 1, isotropic: bool = False, dtype=ti.f32) -> None:
+        if n_sh not in (1, 4, 9, 16):
+            raise ValueError(f"number of SH coefficients must be 1, 4, 9 or 16, got {n_sh}")
+        runtime.init()
+        self.n, self.n_sh, self.isotropic, self.dtype = n, n_sh, isotropic, dtype
+        rows = max(n, 1)
+        shapes = {
+            "means": (rows, 3),
+            "quats": (1 if isotropic else rows, 4),
+            "log_scales": (rows, 1 if isotropic else 3),
+            "opacity_logits": (rows,),
+            "colors": (rows, n_sh, 3),
+        }
+        self.params = {k: ti.ndarray(dtype, s) for k, s in shapes.items()}
+        self.grads = {k: ti.ndarray(dtype, s) for k, s in shapes.items()}
+        self.params["quats"].fill(0.0)
+        self.zero_grad()
+
+    @classmethod
+    def from_numpy(
+        cls, means, quats, log_scales, opacity_logits, colors, isotropic: bool = False, dtype=ti.f32
+    ) -> "DeviceGaussians":
+        """Upload parameters (colors may be (N, 3) for SH degree 0)."""
+        colors = np.asarray(colors)
+        if colors.ndim == 2:
+            colors = colors[:, None, :]
+        log_scales = np.asarray(log_scales)
+        if isotropic and log_scales.ndim == 1:
+            log_scales = log_scales[:, None]
+        model = cls(len(means), colors.shape[1], isotropic, dtype)
+        model.upload(means=means, quats=None if isotropic else quats, log_scales=log_scales,
+                     opacity_logits=opacity_logits, colors=colors)
+        return model
+
+    def upload(self, **arrays: np.ndarray | None) -> None:
+        """Overwrite the named parameters from NumPy (None entries are skipped)."""
+        ftype = np_dtype(self.dtype)
+        for name, value in arrays.items():
+            if value is None or self.n == 0:
+                continue
+            target = self.params[name]
+            value = np.ascontiguousarray(np.asarray(value, dtype=ftype).reshape(target.shape))
+            target.from_numpy(value)
+
+    def download(self, grads: bool = False) -> dict[str, np.ndarray]:
+        """Parameters (or gradients) as NumPy arrays, trimmed to N rows."""
+        source = self.grads if grads else self.params
+        return {k: v.to_numpy()[: self.n] for k, v in source.items()}
+
+    def zero_grad(self) -> None:
+        """Reset every gradient buffer to 0."""
+        for g in self.grads.values():
+            g.fill(0.0)
+
+
+@dataclass
+class Camera:
+    """Pinhole camera in the rasterizer's convention (pixel u samples image coordinate u + 0.5).
+
+    ``K`` 3x3 intrinsics, ``cam_to_world`` 4x4 pose (OpenCV axes), image ``width`` x ``height``.
+    """
+
+    K: np.ndarray
+    cam_to_world: np.ndarray
+    width: int
+    height: int
+
+
+class View:
+    """Buffers of one rendered view: images (``rgb`` (H, W, 3), ``depth`` (H, W),
+    ``transmittance`` (H, W) = 1 - alpha, as ndarrays) and what the backward replays."""
+
+    def __init__(self, dtype) -> None:
+        self.dtype = dtype
+        self.proj = self.rect = self.offsets = self.chunk_base = None
+        self.slot_gid = self.slot_tile = self.keys = self.order = self.tmp_keys = self.tmp_order = None
+        self.entries = None
+        self.tile_cursor = self.tile_start = None
+        self.rgb = self.depth = self.transmittance = self.last = None
+        self.camera: Camera | None = None
+        self.background = np.zeros(3)
+        self.n = self.n_slots = 0
+        self.size = (0, 0)
+
+    def ensure_images(self, width: int, height: int) -> None:
+        if self.size != (width, height):
+            dt = self.dtype
+            self.rgb = ti.ndarray(dt, (height, width, 3))
+            self.depth = ti.ndarray(dt, (height, width))
+            self.transmittance = ti.ndarray(dt, (height, width))
+            self.last = ti.ndarray(ti.i32, (height, width))
+            tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+            self.tile_cursor = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
+            self.tile_start = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
+            self.size = (width, height)
+
+    def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rgb, depth, alpha) as float32 NumPy arrays."""
+        rgb = self.rgb.to_numpy().astype(np.float32)
+        depth = self.depth.to_numpy().astype(np.float32)
+        alpha = (1.0 - self.transmittance.to_numpy()).astype(np.float32)
+        return rgb, depth, alpha
+
+
+def camera_args(camera: Camera, dtype) -> tuple:
+    K = np.asarray(camera.K, dtype=np.float64)
+    cam = ti.Matrix(np.asarray(camera.cam_to_world, dtype=np.float64).tolist(), dt=dtype)
+    intr = ti.Vector([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dt=dtype)
+    return cam, intr
+
+
+class _PhaseClock:
+    """Adds synchronised wall time per phase into a dict; does nothing without one."""
+
+    def __init__(self, timings: dict | None) -> None:
+        self.timings = timings
+        self.last = time.perf_counter() if timings is not None else 0.0
+
+    def __call__(self, phase: str) -> None:
+        if self.timings is not None:
+            ti.sync()
+            now = time.perf_counter()
+            self.timings[phase] = self.timings.get(phase, 0.0) + now - self.last
+            self.last = now
+
+
+class Rasterizer:
+    """Renders :class:`DeviceGaussians` and back-propagates into their gradient buffers.
+
+    ``forward(gaussians, camera, view=i)`` fills view buffer i (reused across calls);
+    ``backward(gaussians, view, d_rgb, d_depth, d_alpha)`` adds dL/dparams into
+    ``gaussians.grads`` and returns dL/d(pose) as a NumPy 6-vector [translation, rotation] for the
+    left perturbation ``cam_to_world' = exp(delta) @ cam_to_world``. Image gradients are ndarrays
+    of the rasterizer's dtype or None (zero).
+    """
+
+    def __init__(self, dtype=ti.f32) -> None:
+        runtime.init()
+        self.dtype = dtype
+        self.k = _kernels(dtype)
+        self.views: dict[int, View] = {}
+        self._zeros: dict[tuple, ti.Ndarray] = {}
+        self._scratch: dict[object, ti.Ndarray] = {}
+
+    def forward(
+        self, gaussians: DeviceGaussians, camera: Camera, view: int = 0, background=(0.0, 0.0, 0.0),
+        timings: dict | None = None,
+    ) -> View:
+        """Render ``camera`` into view buffer ``view`` and return it.
+
+        ``timings``: when a dict is given, each phase is synchronised and its seconds added under
+        "project", "sort" and "blend" (for benchmarks; costs a few syncs)."""
+        clock = _PhaseClock(timings)
+        if gaussians.dtype != self.dtype:
+            raise ValueError("gaussians and rasterizer use different float types")
+        v = self.views.setdefault(view, View(self.dtype))
+        width, height = int(camera.width), int(camera.height)
+        n = gaussians.n
+        v.ensure_images(width, height)
+        v.proj = _grown(v.proj, n, self.dtype, (P_WIDTH,))
+        v.rect = _grown(v.rect, n, ti.i32, (4,))
+        v.offsets = _grown(v.offsets, n + 1, ti.i32)
+        v.chunk_base = _grown(v.chunk_base, n // SCAN_CHUNK + 2, ti.i32)
+        cam, intr = camera_args(camera, self.dtype)
+        p = gaussians.params
+        self.k.project_and_count(
+            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], n, gaussians.n_sh,
+            cam, intr, width, height, v.proj, v.rect, v.offsets, v.chunk_base, gaussians.isotropic,
+        )
+        n_slots = int(v.offsets[n])
+        clock("project")
+        for name, dtype in (("slot_gid", ti.i32), ("slot_tile", ti.i32), ("keys", self.dtype),
+                            ("order", ti.i32), ("tmp_keys", self.dtype), ("tmp_order", ti.i32)):
+            setattr(v, name, _grown(getattr(v, name), n_slots, dtype))
+        v.entries = _grown(v.entries, n_slots, self.dtype, (E_WIDTH,))
+        tiles_x = -(-width // TILE)
+        n_tiles = tiles_x * -(-height // TILE)
+        self.k.bin_and_sort(
+            n, n_slots, tiles_x, n_tiles, v.proj, v.rect, v.offsets,
+            v.slot_gid, v.slot_tile, v.tile_cursor, v.tile_start, v.keys, v.order, v.tmp_keys, v.tmp_order,
+            v.entries,
+        )
+        clock("sort")
+        bg = ti.Vector([float(b) for b in background], dt=self.dtype)
+        self.k.blend(
+            tiles_x, n_tiles, width, height, v.tile_start, v.entries, bg, self._state(F_WIDTH, width, height),
+            v.rgb, v.depth, v.transmittance, v.last,
+        )
+        clock("blend")
+        v.camera, v.background, v.n, v.n_slots = camera, np.asarray(background, dtype=np.float64), n, n_slots
+        return v
+
+    def backward(self, gaussians: DeviceGaussians, view: View, d_rgb=None, d_depth=None, d_alpha=None) -> np.ndarray:
+        """Accumulate dL/dparams into ``gaussians.grads``; return dL/d(pose) (6,)."""
+        width, height = view.size
+        n = gaussians.n
+        if n != view.n:
+            raise ValueError("the Gaussians changed size since this view was rendered")
+        d_rgb = self._zero_if_none(d_rgb, (height, width, 3))
+        d_depth = self._zero_if_none(d_depth, (height, width))
+        d_alpha = self._zero_if_none(d_alpha, (height, width))
+        s = self._scratch
+        s["slot_grad"] = _grown(s.get("slot_grad"), view.n_slots, self.dtype, (N_SLOT_GRADS,))
+        s["pose_part"] = _grown(s.get("pose_part"), n, self.dtype, (6,))
+        s["pose_chunks"] = _grown(s.get("pose_chunks"), math.ceil(n / POSE_CHUNK) + 1, self.dtype, (6,))
+        if "pose_grad" not in s:
+            s["pose_grad"] = ti.ndarray(self.dtype, (6,))
+        tiles_x = -(-width // TILE)
+        n_tiles = tiles_x * -(-height // TILE)
+        cam, intr = camera_args(view.camera, self.dtype)
+        bg = ti.Vector([float(b) for b in view.background], dt=self.dtype)
+        p, g = gaussians.params, gaussians.grads
+        self.k.backward(
+            n, gaussians.n_sh, tiles_x, n_tiles, width, height, cam, intr, bg,
+            p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
+            view.offsets, view.tile_start, view.order, view.entries,
+            view.transmittance, view.last, d_rgb, d_depth, d_alpha,
+            self._state(B_WIDTH, width, height), s["slot_grad"],
+            g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["colors"],
+            s["pose_part"], s["pose_chunks"], s["pose_grad"], gaussians.isotropic,
+        )
+        return s["pose_grad"].to_numpy().astype(np.float64)
+
+    def _state(self, columns: int, width: int, height: int) -> ti.Ndarray:
+        """Per-pixel scratch of the blending passes, shared by all views."""
+        key = ("state", columns, width, height)
+        if key not in self._scratch:
+            self._scratch[key] = ti.ndarray(self.dtype, (height, width, columns))
+        return self._scratch[key]
+
+    def _zero_if_none(self, arr, shape: tuple):
+        if arr is not None:
+            if tuple(arr.shape) != shape or arr.dtype != self.dtype:
+                raise ValueError(f"image gradient has shape {tuple(arr.shape)} ({arr.dtype}), expected {shape}")
+            return arr
+        if shape not in self._zeros:
+            self._zeros[shape] = ti.ndarray(self.dtype, shape)
+            self._zeros[shape].fill(0.0)
+        return self._zeros[shape]
