@@ -30,6 +30,8 @@ app = typer.Typer(
 console = Console(stderr=True)
 EXIT_BAD_INPUT = 2
 EXIT_NOT_BUILT = 3
+EXIT_DIVERGED = 4
+EXIT_INTERRUPTED = 130
 
 
 class Arch(str, Enum):
@@ -51,7 +53,8 @@ def _fail(message: str, code: int) -> None:
 
 
 def handles_errors(command: Callable[..., Any]) -> Callable[..., Any]:
-    """Turn user-facing errors into one line on stderr and exit code 2."""
+    """Turn user-facing errors into one line on stderr: bad input exits 2, a diverging optimiser 4,
+    Ctrl-C 130 (outputs are atomic, so rerunning the same command resumes)."""
 
     @functools.wraps(command)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -59,6 +62,10 @@ def handles_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             return command(*args, **kwargs)
         except (InputError, BackendError) as err:
             _fail(str(err), EXIT_BAD_INPUT)
+        except FloatingPointError as err:
+            _fail(f"{err}; nothing was written for this stage. Lower its learning rates in --config", EXIT_DIVERGED)
+        except KeyboardInterrupt:
+            _fail("interrupted; finished work is kept: rerun the same command to resume", EXIT_INTERRUPTED)
 
     return wrapper
 
@@ -78,14 +85,18 @@ def progress_bar(description: str, total: int) -> Iterator[Callable[..., None]]:
         yield update
 
 
-@app.callback()
+@app.callback(invoke_without_command=True)
 def main(
+    ctx: typer.Context,
     arch: Annotated[Arch, typer.Option(help="Taichi backend: auto picks CUDA only if a GPU is present.")] = Arch.auto,
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
 ) -> None:
     """taichi-gs: reconstruct a scene from a motion-blurred RGB-D sequence."""
     if version:
         typer.echo(__version__)
+        raise typer.Exit()
+    if ctx.invoked_subcommand is None:
+        typer.echo(ctx.get_help())
         raise typer.Exit()
     state.arch = arch.value
 
@@ -188,6 +199,7 @@ FyOption = Annotated[Optional[float], typer.Option("--fy", help="Focal length y 
 CxOption = Annotated[Optional[float], typer.Option("--cx", help="Principal point x (px).")]
 CyOption = Annotated[Optional[float], typer.Option("--cy", help="Principal point y (px).")]
 DepthScaleOption = Annotated[Optional[float], typer.Option("--depth-scale", help="Depth PNG units per metre (TUM: 5000).")]
+ConfigOption = Annotated[Optional[Path], typer.Option("--config", help="TOML file with [pose], [refine], [deblur] tables.")]
 
 
 @app.command()
@@ -196,34 +208,30 @@ def pose(
     folder: Annotated[Path, typer.Argument(help="Input sequence folder (TUM or taichi-gs layout).")],
     out: Annotated[Path, typer.Option("--out", help="Output folder; results go to OUT/pose/.")],
     flow_dir: Annotated[Optional[Path], typer.Option(help="Precomputed flows (.flo or .npy, one per pair).")] = None,
-    config_file: Annotated[Optional[Path], typer.Option("--config", help="TOML file with a [pose] table.")] = None,
+    config_file: ConfigOption = None,
     fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
     depth_scale: DepthScaleOption = None,
 ) -> None:
     """Stage 1: relative poses from optical flow and depth, refined by ICP, chained; fused point cloud."""
-    from .config import read_config, write_config
     from .io.sequence import load_sequence
-    from .report import write_run_info
-    from .stages.pose import PoseConfig, run_pose
+    from .pipeline import resolve_sections, run_stage, write_run_info
 
     _check_output_folder(folder, out)
     sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale))
-    config = PoseConfig()
-    if config_file is not None:
-        config = read_config(config_file, {"pose": config})["pose"]
+    config = resolve_sections("fast", config_file, only=("pose",))["pose"]
     if flow_dir is not None:
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
     write_run_info(out, folder)
-    write_config(out / "pose" / "config.toml", {"pose": config})
-    with progress_bar("stage 1: pose", len(sequence) - 1) as update:
-        result = run_pose(sequence, out, config, progress=lambda done, total: update(done, total))
-    weak = sum(1 for p in result.pairs if p.get("weak"))
-    console.print(f"stage 1 done: {len(sequence) - 1} pairs, {weak} weak; results in {out / 'pose'}")
+    _, summary = run_stage("pose", sequence, out, config, progress_bar)
+    console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
 
 
 class Preset(str, Enum):
     fast = "fast"
     paper = "paper"
+
+
+PresetOption = Annotated[Preset, typer.Option(help="fast: CPU-sized schedules; paper: the method's schedules.")]
 
 
 @app.command()
@@ -232,29 +240,128 @@ def refine(
     out: Annotated[Path, typer.Argument(help="Run folder holding pose/ from stage 1; results go to OUT/refine/.")],
     poses: Annotated[Optional[Path], typer.Option(help="TUM trajectory to start from (default OUT/pose/trajectory.txt).")] = None,
     points: Annotated[Optional[Path], typer.Option(help="Fused point cloud PLY (default OUT/pose/points.ply).")] = None,
-    preset: Annotated[Preset, typer.Option(help="fast: a CPU-sized schedule; paper: the method's 600 N iterations.")] = Preset.fast,
-    config_file: Annotated[Optional[Path], typer.Option("--config", help="TOML file with a [refine] table.")] = None,
+    preset: PresetOption = Preset.fast,
+    config_file: ConfigOption = None,
 ) -> None:
     """Stage 2: refine poses, positions and opacities of fixed-scale Gaussians against the input depth."""
-    from .config import read_config, write_config
     from .io.sequence import load_sequence
-    from .report import sequence_folder
-    from .stages.refine import PRESETS, load_stage1, run_refine
+    from .pipeline import resolve_sections, run_stage, sequence_folder
 
-    _, initial, cloud, colors, voxel = load_stage1(out, poses, points)
     sequence = load_sequence(sequence_folder(out))
-    config = PRESETS[preset.value]
-    if config_file is not None:
-        config = read_config(config_file, {"refine": config})["refine"]
-    if config.voxel_size <= 0:
-        config = dataclasses.replace(config, voxel_size=voxel)
+    config = resolve_sections(preset.value, config_file, only=("refine",))["refine"]
     _init_backend()
-    write_config(out / "refine" / "config.toml", {"refine": config})
-    total = config.iterations_per_frame * len(sequence)
-    with progress_bar("stage 2: refine", total) as update:
-        result = run_refine(sequence, initial, cloud, colors, out, config, progress=update)
-    console.print(f"stage 2 done: {result.gaussians} Gaussians, {result.seconds_per_iteration * 1000:.1f} ms/iteration; "
-                  f"results in {out / 'refine'}")
+    _, summary = run_stage("refine", sequence, out, config, progress_bar, poses=poses, points=points)
+    console.print(f"stage 2 done: {summary}; results in {out / 'refine'}")
+
+
+@app.command()
+@handles_errors
+def reconstruct(
+    folder: Annotated[Path, typer.Argument(help="Input sequence folder (TUM or taichi-gs layout).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder (pose/, refine/, deblur/, config.toml).")],
+    preset: PresetOption = Preset.fast,
+    config_file: ConfigOption = None,
+    force: Annotated[Optional[str], typer.Option(help="Rerun from this stage on: pose | refine | deblur.")] = None,
+    fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
+    depth_scale: DepthScaleOption = None,
+) -> None:
+    """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
+    from .io.sequence import load_sequence
+    from .pipeline import reconstruct as run_all
+    from .pipeline import resolve_sections
+
+    _check_output_folder(folder, out)
+    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale))
+    sequence.check_all()
+    sections = resolve_sections(preset.value, config_file)
+    _init_backend()
+
+    def report(stage) -> None:
+        verb = "done" if stage.ran else "already done, skipped"
+        console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
+
+    run_all(sequence, out, sections, progress_bar, force=force, on_stage=report)
+    console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
+                  f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
+
+
+class PathKind(str, Enum):
+    orbit = "orbit"
+    trajectory = "trajectory"
+
+
+@app.command()
+@handles_errors
+def render(
+    out: Annotated[Path, typer.Argument(help="Finished run folder.")],
+    path: Annotated[PathKind, typer.Option(help="orbit: circle around the scene; trajectory: along the cameras.")] = PathKind.orbit,
+    frames: Annotated[int, typer.Option(min=2, help="Number of views.")] = 60,
+    scale: Annotated[float, typer.Option(min=0.1, max=4.0, help="Image size relative to the input.")] = 1.0,
+) -> None:
+    """Sharp renders of the newest splats along a camera path: OUT/render/PATH/*.png and PATH.gif."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    from .camera_paths import orbit_path, trajectory_path
+    from .export import final_poses
+    from .io.ply import read_splats
+    from .io.sequence import load_sequence
+    from .render import render_views
+    from .io.images import write_png
+    from .pipeline import sequence_folder
+
+    sequence = load_sequence(sequence_folder(out))
+    splat_path = next((out / s / "splats.ply" for s in ("deblur", "refine") if (out / s / "splats.ply").is_file()), None)
+    if splat_path is None:
+        raise InputError(out, "no splats.ply in deblur/ or refine/", "run 'taichi-gs reconstruct' first")
+    splats = read_splats(splat_path)
+    poses = final_poses(out, sequence)
+    cameras = orbit_path(poses, splats.means, frames) if path is PathKind.orbit else trajectory_path(poses, frames)
+    intr = sequence.intrinsics
+    width, height = max(8, round(intr.width * scale)), max(8, round(intr.height * scale))
+    K = sequence.K() * np.array([[width / intr.width], [height / intr.height], [1.0]])
+    _init_backend()
+    target = out / "render" / path.value
+    images = []
+    with progress_bar(f"render {path.value}", frames) as update:
+        for i, (rgb, _, _) in enumerate(render_views(splats, K, width, height, cameras)):
+            image = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
+            write_png(target / f"{i:06d}.png", image)
+            images.append(image)
+            update(i + 1, frames)
+    from .io.atomic import atomic_path
+
+    with atomic_path(out / "render" / f"{path.value}.gif") as tmp:
+        iio.imwrite(tmp, np.stack(images), extension=".gif", duration=40, loop=0)
+    console.print(f"wrote {frames} views from {splat_path.parent.name}/splats.ply to {target} and {target}.gif")
+
+
+class ExportFormat(str, Enum):
+    nerfstudio = "nerfstudio"
+    colmap = "colmap"
+    ply = "ply"
+
+
+@app.command()
+@handles_errors
+def export(
+    out: Annotated[Path, typer.Argument(help="Finished run folder.")],
+    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio | colmap | ply")] = ExportFormat.nerfstudio,
+    dest: Annotated[Optional[Path], typer.Option(help="Target folder (default OUT/export/FORMAT).")] = None,
+) -> None:
+    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, or PLYs."""
+    from .export import export_colmap, export_nerfstudio, export_ply
+    from .io.sequence import load_sequence
+    from .pipeline import sequence_folder
+
+    dest = dest or out / "export" / format.value
+    if format is ExportFormat.ply:
+        written = export_ply(out, dest)
+    else:
+        sequence = load_sequence(sequence_folder(out))
+        exporter = export_nerfstudio if format is ExportFormat.nerfstudio else export_colmap
+        written = exporter(out, sequence, dest)
+    console.print(f"exported {format.value} to {written}")
 
 
 def _init_backend() -> None:
@@ -280,10 +387,7 @@ def _not_built(name: str, issue: str) -> Callable[..., None]:
 
 
 for _name, _issue in {
-    "reconstruct": "end-to-end issue: runs pose, refine and deblur",
     "deblur": "stage 3: deblurring",
-    "render": "end-to-end issue: renders from a finished run",
-    "export": "end-to-end issue: nerfstudio/COLMAP/PLY export",
 }.items():
     app.command(_name, context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(_not_built(_name, _issue))
 

@@ -122,3 +122,28 @@ def trajectory_plot(path: str | Path, trajectories: dict[str, np.ndarray], title
         canvas.polyline(x, z, _COLORS[k % len(_COLORS)])
     canvas.legend(list(trajectories))
     canvas.save(path)
+
+
+def image_grid(path: str | Path, rows: list[list[np.ndarray]], column_titles: list[str],
+               row_titles: list[str] | None = None) -> None:
+    """Write a PNG grid of same-sized images (float in [0, 1] or uint8; grey or RGB), with a title
+    above each column and, optionally, a label in each row's first image."""
+    if not rows or not rows[0]:
+        raise ValueError("image_grid needs at least one image")
+    h, w = rows[0][0].shape[:2]
+    header = 24
+    canvas = np.full((header + h * len(rows), w * len(rows[0]), 3), 255, dtype=np.uint8)
+    for c, title in enumerate(column_titles):
+        cv2.putText(canvas, title, (c * w + 4, 17), _FONT, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    for r, row in enumerate(rows):
+        for c, image in enumerate(row):
+            tile = image if image.dtype == np.uint8 else np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)
+            if tile.ndim == 2:
+                tile = np.repeat(tile[:, :, None], 3, axis=2)
+            if tile.shape[:2] != (h, w):
+                tile = cv2.resize(tile, (w, h), interpolation=cv2.INTER_AREA)
+            canvas[header + r * h: header + (r + 1) * h, c * w: (c + 1) * w] = tile
+        if row_titles:
+            cv2.putText(canvas, row_titles[r], (4, header + r * h + 16), _FONT, 0.45, (255, 255, 0), 1, cv2.LINE_AA)
+    with atomic_path(path) as tmp:
+        cv2.imwrite(str(tmp), cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR))

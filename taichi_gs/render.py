@@ -52,18 +52,20 @@ receives a Gaussian where ``o exp(power) >= 1/255`` within 3 sigma (see ``kernel
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import se3_exp, se3_log, skew
+from .geometry import raster_intrinsics, se3_exp, se3_log, skew
 from .kernels import blur, losses, runtime
 from .kernels.optim import Adam
 from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, to_device
+from .splats import Splats
 
 __all__ = [
     "Camera", "DeviceGaussians", "Rasterizer", "View", "RenderGrads", "RenderResult", "rasterize",
-    "virtual_pose", "exposure_pose_gradients", "to_device", "losses", "blur", "Adam",
+    "virtual_pose", "exposure_pose_gradients", "to_device", "losses", "blur", "Adam", "render_views",
 ]
 
 
@@ -135,6 +137,20 @@ def rasterize(
     view = rasterizer.forward(gaussians, camera, background=background)
     rgb, depth, alpha = view.to_numpy()
     return RenderResult(rgb, depth, alpha, rasterizer, gaussians, view, colors.shape)
+
+
+def render_views(
+    splats: Splats, K: np.ndarray, width: int, height: int, poses: Iterable[np.ndarray], background=(0.0, 0.0, 0.0)
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Render one scene from many cameras: yields (rgb, depth, alpha) float32 per pose. ``K`` is in
+    the data's OpenCV convention; the Gaussians are uploaded once."""
+    runtime.init()
+    gaussians = DeviceGaussians.from_numpy(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, splats.sh)
+    rasterizer = Rasterizer(gaussians.dtype)
+    K_raster = raster_intrinsics(K)
+    for pose in poses:
+        view = rasterizer.forward(gaussians, Camera(K_raster, pose, int(width), int(height)), background=background)
+        yield view.to_numpy()
 
 
 def virtual_pose(base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, tau: float) -> np.ndarray:

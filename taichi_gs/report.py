@@ -11,29 +11,15 @@ import numpy as np
 
 from . import __version__
 from .errors import InputError
-from .evaluate import align_trajectory, match_by_time, trajectory_errors
+from .evaluate import align_trajectory, inverse_depth_rmse, match_by_time, psnr, ssim, trajectory_errors
 from .io.atomic import write_text
-from .io.sequence import load_sequence
+from .io.sequence import Sequence, load_sequence, read_color, read_depth
 from .io.trajectory import read_tum
-from .plots import line_plot, trajectory_plot
+from .pipeline import iter_stage_records, sequence_folder
+from .plots import image_grid, line_plot, trajectory_plot
 
 STAGES = ("pose", "refine", "deblur")
-RUN_INFO = "run.json"
-
-
-def write_run_info(run_dir: Path, sequence_folder: Path) -> None:
-    """Record which sequence a run folder was made from, so `eval` can find its ground truth."""
-    write_text(run_dir / RUN_INFO, json.dumps({"sequence": str(sequence_folder.resolve())}, indent=2) + "\n")
-
-
-def sequence_folder(run_dir: Path, gt: Path | None = None) -> Path:
-    """The input sequence of a run: ``gt`` if given, else the one recorded in RUN_DIR/run.json."""
-    if gt is not None:
-        return gt
-    info = run_dir / RUN_INFO
-    if not info.is_file():
-        raise InputError(run_dir, f"no {RUN_INFO} naming the input sequence", "pass --gt SEQUENCE_FOLDER")
-    return Path(json.loads(info.read_text())["sequence"])
+GRID_VIEWS = 4
 
 
 def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
@@ -61,15 +47,78 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
             aligned[stage] = moved
             position_errors[stage] = (j[finite], np.linalg.norm(moved[:, :3, 3] - gt[finite][:, :3, 3], axis=1))
     if not trajectories:
-        raise InputError(run_dir, "no stage output (pose/, refine/, deblur/) with a trajectory.txt", "run 'taichi-gs pose' first")
+        raise InputError(run_dir, "no stage output (pose/, refine/, deblur/) with a trajectory.txt", "run 'taichi-gs reconstruct' first")
     if position_errors:
         trajectory_plot(run_dir / "report" / "trajectory_top.png", aligned, "trajectories, aligned to ground truth (top view)")
         line_plot(run_dir / "report" / "position_error.png", position_errors, "position error after alignment",
                   "frame", "error (m)")
+    stages = {stage: {k: record.get(k) for k in ("seconds", "peak_rss_mb", "arch", "summary")}
+              for stage, record in iter_stage_records(run_dir)}
     metrics = {
         "trajectory": trajectories,
-        "versions": {"taichi-gs": __version__, "python": platform.python_version()},
+        "images": image_metrics(run_dir, sequence),
+        "stages": stages,
+        "arch": next((s["arch"] for s in stages.values() if s.get("arch") not in (None, "none")), "none"),
+        "versions": _versions(),
         "sequence": str(sequence.root),
     }
     write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def _versions() -> dict[str, str]:
+    import cv2
+    import open3d
+    import taichi
+
+    return {"taichi-gs": __version__, "python": platform.python_version(), "numpy": np.__version__,
+            "taichi": ".".join(map(str, taichi.__version__)), "open3d": open3d.__version__, "opencv": cv2.__version__}
+
+
+def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
+    """PSNR/SSIM of stage 3's sharp renders against the sharp ground truth (with the blurred input's
+    own scores as the floor) and inverse-depth RMSE of its depth renders against the input depth,
+    per split (test views are held out of training); None before stage 3 has run.
+
+    LPIPS needs network weights that cannot be fetched here, so it is reported as unavailable.
+    Writes RUN_DIR/report/test_views.png (input | deblurred | ground truth | depth)."""
+    deblur = run_dir / "deblur"
+    split_path = deblur / "split.json"
+    if not split_path.is_file():
+        return None
+    split = json.loads(split_path.read_text())
+    has_sharp = sequence.sharp_paths is not None
+    result: dict[str, Any] = {"lpips": "unavailable (no LPIPS network weights on this machine)",
+                              "ground_truth": "sharp images" if has_sharp else "none: only depth is scored"}
+    grid_rows, grid_titles = [], []
+    for group in ("test", "train"):
+        scores: dict[str, list[float]] = {}
+        for i in split.get(group, []):
+            stem = sequence.names[i]
+            render = read_color(deblur / "renders" / "sharp" / f"{stem}.png")
+            depth = read_depth(deblur / "renders" / "depth" / f"{stem}.png", sequence.intrinsics.depth_scale)
+            scores.setdefault("inverse_depth_rmse", []).append(inverse_depth_rmse(depth, sequence.depth(i)))
+            if has_sharp:
+                sharp, blurred = sequence.sharp(i), sequence.color(i)
+                for name, value in (("psnr_db", psnr(render, sharp)), ("ssim", ssim(render, sharp)),
+                                    ("blurred_input_psnr_db", psnr(blurred, sharp)),
+                                    ("blurred_input_ssim", ssim(blurred, sharp))):
+                    scores.setdefault(name, []).append(value)
+                if group == "test" and len(grid_rows) < GRID_VIEWS:
+                    grid_rows.append([blurred, render, sharp, _depth_image(depth)])
+                    grid_titles.append(stem)
+        if scores:
+            result[group] = {"views": len(split.get(group, [])), **{k: float(np.mean(v)) for k, v in scores.items()}}
+    if grid_rows:
+        image_grid(run_dir / "report" / "test_views.png", grid_rows,
+                   ["blurred input", "deblurred (ours)", "sharp ground truth", "rendered depth"], grid_titles)
+    return result
+
+
+def _depth_image(depth: np.ndarray) -> np.ndarray:
+    """Depth as a grey image (near = bright), for grids."""
+    valid = depth > 0
+    if not valid.any():
+        return np.zeros_like(depth)
+    lo, hi = np.percentile(depth[valid], [2, 98])
+    return np.where(valid, 1.0 - np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1), 0.0)

@@ -35,7 +35,8 @@ from .geometry import (
     backproject, interpolate, intrinsics_matrix, invert, pose_from_rt, project, se3_exp, se3_log,
     so3_exp, transform,
 )
-from .io.atomic import atomic_path, write_text
+from .io.atomic import write_text
+from .io.images import encode_depth, to_uint8, write_png
 from .io.trajectory import format_tum, write_tum
 
 GENERATOR_VERSION = 1
@@ -438,13 +439,6 @@ def sensor_depth(depth: np.ndarray, config: SynthConfig, rng: np.random.Generato
     return out
 
 
-def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
-    """16-bit depth image: round(metres x scale), 0 where invalid or beyond what 16 bits hold."""
-    raw = np.round(np.clip(depth_m, 0.0, None) * depth_scale)
-    raw[raw > np.iinfo(np.uint16).max] = 0
-    return raw.astype(np.uint16)
-
-
 # ---------------------------------------------------------------------------------------------
 # Output
 
@@ -484,24 +478,11 @@ def render_frame(
     return FrameImages(blurred, sharp, raw), FrameStats(count, smear_mean, smear_max)
 
 
-def _to_uint8(rgb: np.ndarray) -> np.ndarray:
-    return np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
-def _write_png(path: Path, image: np.ndarray) -> None:
-    """Write an RGB (H x W x 3) or single-channel image as PNG, atomically."""
-    if image.ndim == 3:
-        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"could not write {path}")
-
-
 def _write_frame(out_dir: Path, index: int, frame: FrameImages) -> None:
     name = f"{index:06d}.png"
-    _write_png(out_dir / "rgb" / name, _to_uint8(frame.blurred))
-    _write_png(out_dir / "sharp" / name, _to_uint8(frame.sharp))
-    _write_png(out_dir / "depth" / name, frame.depth_raw)
+    write_png(out_dir / "rgb" / name, to_uint8(frame.blurred))
+    write_png(out_dir / "sharp" / name, to_uint8(frame.sharp))
+    write_png(out_dir / "depth" / name, frame.depth_raw)
 
 
 def _pose_fields(T: np.ndarray) -> str:
