@@ -199,7 +199,7 @@ def reconstruct(
     reports: list[StageReport] = []
     upstream_ran = False
     for stage in STAGES:
-        section = _resolved(stage, out, sections)
+        section = resolve_stage(stage, sections)
         if not upstream_ran and stage_done(out, stage, section):
             done = read_done(out, stage) or {}
             report = StageReport(stage, False, float(done.get("seconds", 0.0)), float(done.get("peak_rss_mb", 0.0)),
@@ -217,7 +217,7 @@ def reconstruct(
     return reports
 
 
-def _resolved(stage: str, out: Path, sections: dict[str, Any]) -> Any:
+def resolve_stage(stage: str, sections: dict[str, Any]) -> Any:
     """A stage's config with values that depend on earlier stages filled in (refine's voxel size)."""
     section = sections[stage]
     if stage == "refine" and section.voxel_size <= 0:

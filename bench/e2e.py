@@ -1,0 +1,72 @@
+"""Benchmark the whole pipeline (`taichi-gs reconstruct`) as sequences grow.
+
+    python bench/e2e.py [--frames 30 60 120] [--width 320 --height 240] [--preset fast] [--arch cpu]
+
+For each length: a synthetic hand-held sequence with extreme blur is generated, `taichi-gs
+reconstruct` runs in its own process (so peak memory is that run's alone), then `taichi-gs eval`.
+Prints a Markdown table: seconds per stage, peak resident memory, final ATE, and PSNR/SSIM of the
+held-out views against the sharp ground truth next to the blurred input's own scores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from taichi_gs.synth import SynthConfig, generate
+
+
+def taichi_gs(*args: str) -> None:
+    subprocess.run([sys.executable, "-m", "taichi_gs.cli", *args], check=True, stdout=subprocess.DEVNULL)
+
+
+def run_one(frames: int, width: int, height: int, preset: str, arch: str, work: Path) -> dict:
+    seq = generate(SynthConfig(width=width, height=height, frames=frames, trajectory="handheld", blur="extreme",
+                               seed=0), work / f"seq{frames}")
+    out = work / f"run{frames}"
+    start = time.perf_counter()
+    taichi_gs("--arch", arch, "reconstruct", str(seq), "--out", str(out), "--preset", preset)
+    wall = time.perf_counter() - start
+    taichi_gs("eval", str(out))
+    metrics = json.loads((out / "metrics.json").read_text())
+    stages = metrics["stages"]
+    test = (metrics.get("images") or {}).get("test", {})
+    return {
+        "frames": frames, "size": f"{width}x{height}", "wall": wall,
+        **{f"{s}_s": stages[s]["seconds"] for s in ("pose", "refine", "deblur")},
+        "peak_mb": max(s["peak_rss_mb"] for s in stages.values()),
+        "ate_mm": 1000 * metrics["trajectory"]["deblur"]["ate_m"],
+        "psnr": test.get("psnr_db", float("nan")), "ssim": test.get("ssim", float("nan")),
+        "floor_psnr": test.get("blurred_input_psnr_db", float("nan")),
+        "floor_ssim": test.get("blurred_input_ssim", float("nan")),
+        "arch": metrics["arch"],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, nargs="+", default=[30, 60, 120])
+    parser.add_argument("--width", type=int, default=320)
+    parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--preset", default="fast")
+    parser.add_argument("--arch", default="cpu")
+    parser.add_argument("--work", type=Path, default=None, help="keep sequences and runs here")
+    args = parser.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="bench_e2e_"))
+    print("| frames | image | pose (s) | refine (s) | deblur (s) | total (s) | peak RSS (MB) | ATE (mm) "
+          "| test PSNR (dB) | test SSIM | blurred PSNR (dB) | blurred SSIM | arch |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for frames in args.frames:
+        r = run_one(frames, args.width, args.height, args.preset, args.arch, work)
+        print(f"| {r['frames']} | {r['size']} | {r['pose_s']:.0f} | {r['refine_s']:.0f} | {r['deblur_s']:.0f} "
+              f"| {r['wall']:.0f} | {r['peak_mb']:.0f} | {r['ate_mm']:.2f} | {r['psnr']:.2f} | {r['ssim']:.3f} "
+              f"| {r['floor_psnr']:.2f} | {r['floor_ssim']:.3f} | {r['arch']} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
