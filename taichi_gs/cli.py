@@ -299,41 +299,15 @@ def render(
     scale: Annotated[float, typer.Option(min=0.1, max=4.0, help="Image size relative to the input.")] = 1.0,
 ) -> None:
     """Sharp renders of the newest splats along a camera path: OUT/render/PATH/*.png and PATH.gif."""
-    import imageio.v3 as iio
-    import numpy as np
-
-    from .camera_paths import orbit_path, trajectory_path
-    from .export import final_poses
-    from .io.ply import read_splats
+    from .export import render_path
     from .io.sequence import load_sequence
-    from .render import render_views
-    from .io.images import write_png
     from .pipeline import sequence_folder
 
     sequence = load_sequence(sequence_folder(out))
-    splat_path = next((out / s / "splats.ply" for s in ("deblur", "refine") if (out / s / "splats.ply").is_file()), None)
-    if splat_path is None:
-        raise InputError(out, "no splats.ply in deblur/ or refine/", "run 'taichi-gs reconstruct' first")
-    splats = read_splats(splat_path)
-    poses = final_poses(out, sequence)
-    cameras = orbit_path(poses, splats.means, frames) if path is PathKind.orbit else trajectory_path(poses, frames)
-    intr = sequence.intrinsics
-    width, height = max(8, round(intr.width * scale)), max(8, round(intr.height * scale))
-    K = sequence.K() * np.array([[width / intr.width], [height / intr.height], [1.0]])
     _init_backend()
-    target = out / "render" / path.value
-    images = []
     with progress_bar(f"render {path.value}", frames) as update:
-        for i, (rgb, _, _) in enumerate(render_views(splats, K, width, height, cameras)):
-            image = np.clip(np.round(rgb * 255), 0, 255).astype(np.uint8)
-            write_png(target / f"{i:06d}.png", image)
-            images.append(image)
-            update(i + 1, frames)
-    from .io.atomic import atomic_path
-
-    with atomic_path(out / "render" / f"{path.value}.gif") as tmp:
-        iio.imwrite(tmp, np.stack(images), extension=".gif", duration=40, loop=0)
-    console.print(f"wrote {frames} views from {splat_path.parent.name}/splats.ply to {target} and {target}.gif")
+        target = render_path(out, sequence, path.value, frames, scale, progress=update)
+    console.print(f"wrote {frames} views to {target} and {target}.gif")
 
 
 class ExportFormat(str, Enum):

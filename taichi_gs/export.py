@@ -1,4 +1,5 @@
-"""Hand a finished run to other tools: nerfstudio ``transforms.json``, a COLMAP text model, or PLYs.
+"""Hand a finished run to other tools: nerfstudio ``transforms.json``, a COLMAP text model, PLYs,
+or sharp renders along a camera path.
 
 The newest finished stage provides the poses (deblur, else refine, else pose); images are the
 deblurred sharp renders when stage 3 ran, else the input frames. Everything is written under a
@@ -9,14 +10,18 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
+from .camera_paths import orbit_path, trajectory_path
 from .errors import InputError
-from .geometry import invert, rotmat_to_quat
+from .geometry import intrinsics_matrix, invert, rotmat_to_quat
 from .io.atomic import atomic_path, write_text
-from .io.ply import read_point_cloud
+from .io.images import to_uint8, write_png
+from .io.ply import read_point_cloud, read_splats
 from .io.sequence import Sequence
 from .io.trajectory import read_tum
 from .pipeline import STAGES
@@ -148,3 +153,31 @@ def _points_path(run_dir: Path) -> Path | None:
         if path.is_file():
             return path
     return None
+
+
+def render_path(run_dir: Path, sequence: Sequence, path: str, count: int, scale: float = 1.0,
+                progress: Callable[[int, int], None] | None = None) -> Path:
+    """Render the newest splats along an ``orbit`` or the ``trajectory`` into
+    RUN_DIR/render/PATH/NNNNNN.png and RUN_DIR/render/PATH.gif; returns the PNG folder."""
+    from .render import render_views
+
+    splat_path = next((run_dir / s / "splats.ply" for s in ("deblur", "refine") if (run_dir / s / "splats.ply").is_file()), None)
+    if splat_path is None:
+        raise InputError(run_dir, "no splats.ply in deblur/ or refine/", "run 'taichi-gs reconstruct' first")
+    splats = read_splats(splat_path)
+    poses = final_poses(run_dir, sequence)
+    cameras = orbit_path(poses, splats.means, count) if path == "orbit" else trajectory_path(poses, count)
+    intr = sequence.intrinsics
+    width, height = max(8, round(intr.width * scale)), max(8, round(intr.height * scale))
+    sx, sy = width / intr.width, height / intr.height
+    K = intrinsics_matrix(intr.fx * sx, intr.fy * sy, (intr.cx + 0.5) * sx - 0.5, (intr.cy + 0.5) * sy - 0.5)
+    target = run_dir / "render" / path
+    images = []
+    for i, (rgb, _, _) in enumerate(render_views(splats, K, width, height, cameras)):
+        images.append(to_uint8(rgb))
+        write_png(target / f"{i:06d}.png", images[-1])
+        if progress is not None:
+            progress(i + 1, count)
+    with atomic_path(run_dir / "render" / f"{path}.gif") as tmp:
+        iio.imwrite(tmp, np.stack(images), extension=".gif", duration=40, loop=0)
+    return target
