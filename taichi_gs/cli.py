@@ -29,7 +29,6 @@ app = typer.Typer(
 )
 console = Console(stderr=True)
 EXIT_BAD_INPUT = 2
-EXIT_NOT_BUILT = 3
 EXIT_DIVERGED = 4
 EXIT_INTERRUPTED = 130
 
@@ -338,6 +337,39 @@ def export(
     console.print(f"exported {format.value} to {written}")
 
 
+@app.command()
+@handles_errors
+def deblur(
+    out: Annotated[Path, typer.Argument(help="Run folder holding refine/ from stage 2; results go to OUT/deblur/.")],
+    preset: PresetOption = Preset.fast,
+    config_file: ConfigOption = None,
+    k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
+    holdout: Annotated[Optional[str], typer.Option(help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
+) -> None:
+    """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
+    from .io.sequence import load_sequence
+    from .pipeline import resolve_sections, run_stage, sequence_folder
+
+    sequence = load_sequence(sequence_folder(out))
+    config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
+    changes: dict[str, int] = {} if k is None else {"k": k}
+    if holdout is not None:
+        changes["holdout_every"] = _holdout_every(holdout)
+    config = dataclasses.replace(config, **changes)
+    _init_backend()
+    _, summary = run_stage("deblur", sequence, out, config, progress_bar)
+    console.print(f"stage 3 done: {summary}; results in {out / 'deblur'}", highlight=False)
+
+
+def _holdout_every(text: str) -> int:
+    """``--holdout`` value: 'none' -> 0, else a positive integer."""
+    if text.strip().lower() == "none":
+        return 0
+    if not text.strip().isdigit() or int(text) < 2:
+        raise InputError(None, f"--holdout {text!r} is not 'none' or an integer of at least 2", "e.g. --holdout 3 or --holdout none")
+    return int(text)
+
+
 def _init_backend() -> None:
     from .kernels import runtime
 
@@ -350,20 +382,6 @@ def _check_output_folder(folder: Path, out: Path) -> None:
     folder, target = folder.resolve(), out.resolve()
     if target == folder or folder in target.parents:
         raise InputError(out, "output folder lies inside the input folder", "choose an --out outside the input (inputs are never written to)")
-
-
-def _not_built(name: str, issue: str) -> Callable[..., None]:
-    def command() -> None:
-        _fail(f"'{name}' is not built yet ({issue}); nothing was run", EXIT_NOT_BUILT)
-
-    command.__doc__ = f"[not built yet] {issue}."
-    return command
-
-
-for _name, _issue in {
-    "deblur": "stage 3: deblurring",
-}.items():
-    app.command(_name, context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(_not_built(_name, _issue))
 
 
 if __name__ == "__main__":  # pragma: no cover

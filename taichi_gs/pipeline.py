@@ -82,14 +82,17 @@ def stage_presets(stage: str) -> dict[str, Any]:
 
 
 def resolve_sections(preset: str, config_file: Path | None = None, only: tuple[str, ...] = STAGES) -> dict[str, Any]:
-    """The preset's configs of the ``only`` stages, overridden by a TOML file's tables."""
+    """The preset's configs of the ``only`` stages, overridden by a TOML file's tables (the file
+    may hold every stage's table; all are checked, those of other stages are not used)."""
     sections = {}
-    for stage in only:
+    for stage in STAGES:
         presets = stage_presets(stage)
         if preset not in presets:
             raise InputError(None, f"unknown preset {preset!r}", f"use one of {', '.join(presets)}")
         sections[stage] = presets[preset]
-    return read_config(config_file, sections) if config_file is not None else sections
+    if config_file is not None:
+        sections = read_config(config_file, sections)
+    return {stage: sections[stage] for stage in only}
 
 
 def peak_rss_mb() -> float:

@@ -125,12 +125,15 @@ def trajectory_plot(path: str | Path, trajectories: dict[str, np.ndarray], title
 
 
 def image_grid(path: str | Path, rows: list[list[np.ndarray]], column_titles: list[str],
-               row_titles: list[str] | None = None) -> None:
-    """Write a PNG grid of same-sized images (float in [0, 1] or uint8; grey or RGB), with a title
-    above each column and, optionally, a label in each row's first image."""
+               row_titles: list[str] | None = None, min_width: int = 240) -> None:
+    """Write a PNG grid of images (float in [0, 1] or uint8; grey or RGB; resized to the first
+    one's size, enlarged to at least ``min_width`` pixels), with a title above each column and,
+    optionally, a label in each row's first image."""
     if not rows or not rows[0]:
         raise ValueError("image_grid needs at least one image")
     h, w = rows[0][0].shape[:2]
+    zoom = max(1, -(-min_width // w))
+    h, w = h * zoom, w * zoom
     header = 24
     canvas = np.full((header + h * len(rows), w * len(rows[0]), 3), 255, dtype=np.uint8)
     for c, title in enumerate(column_titles):
@@ -141,7 +144,7 @@ def image_grid(path: str | Path, rows: list[list[np.ndarray]], column_titles: li
             if tile.ndim == 2:
                 tile = np.repeat(tile[:, :, None], 3, axis=2)
             if tile.shape[:2] != (h, w):
-                tile = cv2.resize(tile, (w, h), interpolation=cv2.INTER_AREA)
+                tile = cv2.resize(tile, (w, h), interpolation=cv2.INTER_NEAREST if zoom > 1 else cv2.INTER_AREA)
             canvas[header + r * h: header + (r + 1) * h, c * w: (c + 1) * w] = tile
         if row_titles:
             cv2.putText(canvas, row_titles[r], (4, header + r * h + 16), _FONT, 0.45, (255, 255, 0), 1, cv2.LINE_AA)

@@ -89,3 +89,10 @@ def test_config_file_overrides_presets_and_rejects_unknown_keys(tmp_path):
         resolve_sections("fast", bad)
     with pytest.raises(InputError, match="unknown preset"):
         resolve_sections("turbo")
+
+
+def test_one_config_file_serves_every_stage_command(tmp_path):
+    both = tmp_path / "all.toml"
+    both.write_text("[refine]\nseed = 3\n\n[deblur]\nk = 5\n")
+    assert set(resolve_sections("fast", both, only=("refine",))) == {"refine"}
+    assert resolve_sections("fast", both, only=("deblur",))["deblur"].k == 5
