@@ -1,0 +1,216 @@
+"""Stage 3's trainable scene: full 3D Gaussians (SH colour, opacity, anisotropic scale, rotation,
+position) kept on the device, trained against blurred frames through the k-view blur model, with
+3DGS-style densification (clone small / split large Gaussians with large positional gradients)
+and pruning. Exposure poses live on the host (12 numbers per frame) in :mod:`stages.deblur`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import raster_intrinsics
+from .render import Adam, Camera, DeviceGaussians, Rasterizer, blur, exposure_pose_gradients, losses, to_device, virtual_pose
+from .splats import Splats, logit
+
+TRAINED = ("means", "quats", "log_scales", "opacity_logits", "colors")
+
+
+@dataclass(frozen=True)
+class Rates:
+    """Adam learning rates of the Gaussian parameters for one step."""
+
+    means: float
+    quats: float
+    log_scales: float
+    opacity_logits: float
+    colors: float
+
+
+@dataclass
+class BlurStep:
+    """What one blurred-frame step returns: loss terms, PSNR of the re-blurred render against the
+    blurred frame, and the gradients of the exposure offsets (start, end)."""
+
+    losses: dict[str, float]
+    psnr: float
+    grad_start: np.ndarray
+    grad_end: np.ndarray
+
+
+def exposure_taus(k: int) -> np.ndarray:
+    """Exposure fractions of the k virtual views: linspace(0, 1, k), or the middle alone for k = 1."""
+    return np.linspace(0.0, 1.0, k) if k > 1 else np.array([0.5])
+
+
+def quat_to_rotmats(quats: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices of (N, 4) quaternions w x y z (normalised here)."""
+    q = quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
+    w, x, y, z = q.T
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
+    ], axis=1)
+
+
+class BlurScene:
+    """Gaussians rendered at one resolution (``K`` in OpenCV convention; the rasterizer's half-pixel
+    shift is applied here). :meth:`step` takes one blurred frame's k-view loss and updates the
+    Gaussians; :meth:`densify_and_prune` grows and trims them."""
+
+    def __init__(self, splats: Splats, K: np.ndarray, width: int, height: int):
+        self.K = raster_intrinsics(K)
+        self.width, self.height = width, height
+        self.rasterizer = Rasterizer()
+        self._build(_as_arrays(splats), moments=None, t=0)
+        dtype = self.gaussians.dtype
+        self.frame = to_device(np.zeros((height, width, 3), np.float32), dtype)
+        self.depth_target = to_device(np.zeros((height, width), np.float32), dtype)
+        self.blurred = to_device(np.zeros((height, width, 3), np.float32), dtype)
+        self.grad_blur = to_device(np.zeros((height, width, 3), np.float32), dtype)
+        self.grad_view = to_device(np.zeros((height, width, 3), np.float32), dtype)
+        self.grad_depth = to_device(np.zeros((height, width), np.float32), dtype)
+        self.grad_sum = np.zeros(self.count)
+        self.grad_count = np.zeros(self.count)
+
+    def _build(self, arrays: dict[str, np.ndarray], moments: dict | None, t: int) -> None:
+        self.gaussians = DeviceGaussians.from_numpy(arrays["means"], arrays["quats"], arrays["log_scales"],
+                                                    arrays["opacity_logits"], arrays["colors"])
+        self.adam = Adam(self.gaussians.params, self.gaussians.grads, {name: 0.0 for name in TRAINED})
+        self.adam.t = t
+        for name, (m, v) in (moments or {}).items():
+            self.adam.moments[name][0].from_numpy(np.ascontiguousarray(m, np.float32))
+            self.adam.moments[name][1].from_numpy(np.ascontiguousarray(v, np.float32))
+
+    @property
+    def count(self) -> int:
+        return self.gaussians.n
+
+    def camera(self, cam_to_world: np.ndarray) -> Camera:
+        return Camera(self.K, cam_to_world, self.width, self.height)
+
+    def _render_exposure(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray) -> list:
+        views = [self.rasterizer.forward(self.gaussians, self.camera(virtual_pose(base, d_start, d_end, tau)), view=j)
+                 for j, tau in enumerate(taus)]
+        blur.average([v.rgb for v in views], self.blurred)
+        return views
+
+    def step(self, frame: np.ndarray, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
+             k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None) -> BlurStep:
+        """Render the frame's k virtual views, average them, take (1 - l_B) L1 + l_B D-SSIM against
+        ``frame`` plus ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``,
+        back-propagate, and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians."""
+        taus = exposure_taus(k)
+        mid = int(np.argmin(np.abs(taus - 0.5)))
+        self.frame.from_numpy(np.ascontiguousarray(frame, np.float32))
+        views = self._render_exposure(base, d_start, d_end, taus)
+        self.grad_blur.fill(0.0)
+        self.grad_depth.fill(0.0)
+        l1 = losses.l1(self.blurred, self.frame, self.grad_blur, weight=1.0 - lambda_dssim)
+        dssim = losses.dssim(self.blurred, self.frame, self.grad_blur, weight=lambda_dssim)
+        depth_l1 = 0.0
+        if lambda_depth > 0:
+            self.depth_target.from_numpy(np.ascontiguousarray(depth, np.float32))
+            depth_l1 = losses.masked_depth_l1(views[mid].depth, self.depth_target, self.grad_depth, weight=lambda_depth)
+        blur.spread(self.grad_blur, k, self.grad_view)
+        self.gaussians.zero_grad()
+        pose_grads = [self.rasterizer.backward(self.gaussians, v, d_rgb=self.grad_view,
+                                               d_depth=self.grad_depth if j == mid and lambda_depth > 0 else None)
+                      for j, v in enumerate(views)]
+        g_start, g_end = exposure_pose_gradients(base, d_start, d_end, taus, pose_grads)
+        if rates is not None:
+            self._accumulate_densify_stats(virtual_pose(base, d_start, d_end, taus[mid]))
+            self.adam.lrs.update(vars(rates))
+            self.adam.step(self.count)
+        mse = float(np.mean((np.clip(self.blurred.to_numpy(), 0, 1) - frame) ** 2))
+        return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
+                        g_start, g_end)
+
+    def _accumulate_densify_stats(self, cam_to_world: np.ndarray) -> None:
+        """Add each Gaussian's positional gradient, converted to image-plane pixels (|g| z / f)."""
+        grad = np.linalg.norm(self.gaussians.grads["means"].to_numpy()[: self.count], axis=1)
+        means = self.gaussians.params["means"].to_numpy()[: self.count]
+        z = np.abs((means - cam_to_world[:3, 3]) @ cam_to_world[:3, 2])
+        seen = grad > 0
+        self.grad_sum[seen] += grad[seen] * z[seen] / self.K[0, 0]
+        self.grad_count[seen] += 1
+
+    def render(self, cam_to_world: np.ndarray, min_alpha: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+        """Sharp colour (H, W, 3) and depth (H, W) at one pose, as NumPy; the depth is the blended z
+        divided by alpha (the expected depth of what the pixel sees), 0 where alpha < ``min_alpha``."""
+        rgb, depth, alpha = self.rasterizer.forward(self.gaussians, self.camera(cam_to_world)).to_numpy()
+        return rgb, np.where(alpha >= min_alpha, depth / np.maximum(alpha, min_alpha), 0.0).astype(np.float32)
+
+    def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int) -> np.ndarray:
+        """The k-view average (H, W, 3) over an exposure, as NumPy."""
+        self._render_exposure(base, d_start, d_end, exposure_taus(k))
+        return self.blurred.to_numpy().astype(np.float32)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Parameters as NumPy, trimmed to the live Gaussians."""
+        return self.gaussians.download()
+
+    def splats(self) -> Splats:
+        a = self.arrays()
+        return Splats(a["means"], a["quats"], a["log_scales"], a["opacity_logits"], a["colors"])
+
+    def _moments(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        return {name: (m.to_numpy()[: self.count], v.to_numpy()[: self.count]) for name, (m, v) in self.adam.moments.items()}
+
+    def densify_and_prune(self, grad_threshold_px: float, split_scale: float, min_opacity: float, max_scale: float,
+                          max_gaussians: int, rng: np.random.Generator) -> tuple[int, int]:
+        """3DGS's adaptive density control: Gaussians whose mean image-plane positional gradient
+        exceeds ``grad_threshold_px`` are cloned (largest scale <= ``split_scale``, metres) or split
+        in two samples of themselves with scales / 1.6; then those with opacity < ``min_opacity`` or
+        a scale > ``max_scale`` are dropped. Never grows past ``max_gaussians``. Returns (added, removed)."""
+        a, moments = self.arrays(), self._moments()
+        mean_grad = self.grad_sum / np.maximum(self.grad_count, 1)
+        grow = np.flatnonzero(mean_grad > grad_threshold_px)
+        room = max(max_gaussians - self.count, 0)
+        if len(grow) > room:
+            grow = grow[np.argsort(-mean_grad[grow])[:room]]
+        big = a["log_scales"][grow].max(axis=1) > np.log(split_scale)
+        split, clone = grow[big], grow[~big]
+        new = {name: np.concatenate([a[name][clone], a[name][split]]) for name in TRAINED}
+        if len(split):
+            scales = np.exp(a["log_scales"][split])
+            offsets = np.einsum("nij,nj->ni", quat_to_rotmats(a["quats"][split]), rng.normal(size=scales.shape) * scales)
+            new["means"][len(clone):] += offsets
+            a["means"][split] -= offsets
+            new["log_scales"][len(clone):] -= np.log(1.6)
+            a["log_scales"][split] -= np.log(1.6)
+        merged = {name: np.concatenate([a[name], new[name]]) for name in TRAINED}
+        keep = (merged["opacity_logits"] >= logit(min_opacity)) & (merged["log_scales"].max(axis=1) <= np.log(max_scale))
+        added = len(grow)
+        zeros = {name: np.zeros_like(new[name]) for name in TRAINED}
+        moments = {name: tuple(np.concatenate([mv, zeros[name]])[keep] for mv in moments[name]) for name in TRAINED}
+        self._build({name: merged[name][keep] for name in TRAINED}, moments, self.adam.t)
+        self.grad_sum = np.zeros(self.count)
+        self.grad_count = np.zeros(self.count)
+        return added, int((~keep).sum())
+
+    def reset_opacity(self, opacity: float) -> None:
+        """Clamp every opacity to at most ``opacity`` and forget its Adam moments (3DGS's reset)."""
+        logits = np.minimum(self.arrays()["opacity_logits"], logit(opacity))
+        self.gaussians.upload(opacity_logits=logits.astype(np.float32))
+        for moment in self.adam.moments["opacity_logits"]:
+            moment.fill(0.0)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything needed to resume: parameters, Adam moments and step, densification statistics."""
+        out = {f"p_{name}": value for name, value in self.arrays().items()}
+        for name, (m, v) in self._moments().items():
+            out[f"m_{name}"], out[f"v_{name}"] = m, v
+        out.update(adam_t=np.array(self.adam.t), grad_sum=self.grad_sum, grad_count=self.grad_count)
+        return out
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        moments = {name: (state[f"m_{name}"], state[f"v_{name}"]) for name in TRAINED}
+        self._build({name: state[f"p_{name}"] for name in TRAINED}, moments, int(state["adam_t"]))
+        self.grad_sum, self.grad_count = state["grad_sum"].copy(), state["grad_count"].copy()
+
+
+def _as_arrays(splats: Splats) -> dict[str, np.ndarray]:
+    return {"means": splats.means, "quats": splats.quats, "log_scales": splats.log_scales,
+            "opacity_logits": splats.opacity_logits, "colors": splats.sh}

@@ -1,0 +1,425 @@
+"""Stage 3: deblurring. Each training frame's blurred colour is modelled as the mean of k sharp
+renders at virtual poses ``T_t exp((1 - tau) d_s + tau d_e)``, tau in linspace(0, 1, k), between
+its exposure start and end; the loss is (1 - l_B) L1 + l_B D-SSIM of that mean against the input,
+plus l_D times the masked depth L1 of the mid-exposure render. All Gaussian parameters (with
+3DGS-style densification and pruning) and both exposure offsets of every training frame are
+trained. Every ``holdout_every``-th frame (1, 1 + h, ...) is held out; its camera comes from
+stage 2 and, optionally, a test-time refinement of its own exposure against its blurred frame with
+the scene frozen (no ground truth places a camera).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..deblur_model import BlurScene, Rates
+from ..errors import InputError
+from ..geometry import invert, se3_log
+from ..io.atomic import atomic_path, write_text
+from ..io.ply import read_splats, write_splats
+from ..io.sequence import Sequence
+from ..io.trajectory import format_tum, read_tum, write_tum
+from ..plots import line_plot
+from ..render import virtual_pose
+from ..splats import Splats
+from .refine import _downsample_depth, _exp_decay, _scaled_intrinsics
+
+
+@dataclass(frozen=True)
+class DeblurConfig:
+    """Every number stage 3 uses; defaults follow the method and 3DGS (`paper` preset)."""
+
+    k: int = 15  # virtual sharp views per exposure
+    holdout_every: int = 3  # every h-th frame is a test view; 0 = train on all
+    iterations: int = 30000
+    lambda_dssim: float = 0.2  # l_B
+    lambda_depth: float = 0.1  # l_D
+    sh_degree: int = 3
+    lr_means: float = 1.6e-4  # times the scene extent, decayed to lr_means_final
+    lr_means_final: float = 1.6e-6
+    lr_colors: float = 0.0025
+    lr_opacity: float = 0.05
+    lr_scales: float = 0.005
+    lr_quats: float = 0.001
+    lr_exposure: float = 1e-3  # Adam on the se(3) offsets, decayed to lr_exposure_final
+    lr_exposure_final: float = 1e-4
+    exposure_from: int = 0  # exposures stay at their start for this many iterations (the scene settles first)
+    initial_exposure_fraction: float = 0.5  # offsets start at +-half this share of the motion to the neighbours
+    min_open_px: float = 0.25  # exposures narrower than this on the image are re-opened to it
+    max_step_px: float = 1.0  # warn when adjacent virtual views move more than this
+    densify_from: int = 500
+    densify_until: int = 15000
+    densify_every: int = 100
+    densify_grad: float = 0.0002  # 3DGS's threshold on the mean NDC positional gradient
+    split_scale: float = 0.01  # clone below, split above this share of the scene extent
+    prune_opacity: float = 0.005
+    prune_scale: float = 0.1  # drop Gaussians larger than this share of the scene extent
+    max_gaussians: int = 2_000_000
+    reset_opacity_every: int = 3000  # 0 = never
+    test_pose_iterations: int = 100  # test-time exposure refinement per held-out frame; 0 = off
+    lr_test_pose: float = 1e-3
+    resolution_scale: int = 1  # train at 1/scale of the input resolution; outputs are full size
+    seed: int = 0
+    checkpoint_every: int = 1000
+    grid_frames: int = 4
+
+
+PRESETS = {
+    "paper": DeblurConfig(),
+    # CPU-sized: 1/20 of the iterations, so colours learn 8x faster; exposures wait for the scene to settle.
+    "fast": DeblurConfig(k=9, iterations=1500, sh_degree=0, lr_colors=0.02, densify_from=200, densify_until=1000,
+                         densify_every=100, reset_opacity_every=0, test_pose_iterations=30, lr_exposure=2e-3,
+                         exposure_from=300, resolution_scale=2, checkpoint_every=250),
+}
+
+
+@dataclass
+class DeblurResult:
+    mid_poses: np.ndarray  # (N, 4, 4) mid-exposure camera-to-world
+    exposure: np.ndarray  # (N, 2, 4, 4) start and end
+    train: list[int]
+    test: list[int]
+    loss_history: list[dict[str, float]]
+    gaussians: int
+    seconds_per_iteration: float
+    warnings: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        text = (f"{self.gaussians} Gaussians, {len(self.train)} train / {len(self.test)} test views, "
+                f"{self.seconds_per_iteration * 1000:.0f} ms/iteration")
+        return "; ".join([text] + [f"warning: {w}" for w in self.warnings])
+
+
+def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int]]:
+    """(train, test) frame indices: frames 1, 1 + h, 1 + 2h, ... are test views (none if h is 0)."""
+    test = list(range(1, n_frames, holdout_every)) if holdout_every > 0 else []
+    held_out = set(test)
+    train = [i for i in range(n_frames) if i not in held_out]
+    if not train:
+        raise InputError(None, f"no training frames left with holdout_every={holdout_every}",
+                         "use --holdout none or a larger value")
+    return train, test
+
+
+def load_stage2(out_dir: Path, n_frames: int) -> tuple[np.ndarray, Splats]:
+    """Stage-2 poses (N, 4, 4) and splats from OUT/refine/."""
+    poses_path, splats_path = out_dir / "refine" / "trajectory.txt", out_dir / "refine" / "splats.ply"
+    for path in (poses_path, splats_path):
+        if not path.is_file():
+            raise InputError(path, "stage-2 output missing", "run 'taichi-gs refine' first")
+    _, poses = read_tum(poses_path)
+    if len(poses) != n_frames:
+        raise InputError(poses_path, f"{len(poses)} poses for {n_frames} frames", "rerun stage 2 on this sequence")
+    splats = read_splats(splats_path)
+    if len(splats) == 0:
+        raise InputError(splats_path, "no Gaussians", "rerun stage 2")
+    return poses, splats
+
+
+def with_sh_degree(splats: Splats, degree: int) -> Splats:
+    """The splats with SH bands up to ``degree`` (higher bands added as zeros or dropped)."""
+    m = (degree + 1) ** 2
+    sh = np.zeros((len(splats), m, 3), np.float32)
+    keep = min(m, splats.sh.shape[1])
+    sh[:, :keep] = splats.sh[:, :keep]
+    return dataclasses.replace(splats, sh=sh)
+
+
+def initial_offsets(poses: np.ndarray, fraction: float) -> np.ndarray:
+    """(N, 2, 6) start/end offsets: -+ half of ``fraction`` of each frame's velocity twist (the
+    mean of the motions to its neighbours, in its own frame), so every exposure starts open."""
+    n = len(poses)
+    offsets = np.zeros((n, 2, 6))
+    for i in range(n):
+        ahead = se3_log(invert(poses[i]) @ poses[i + 1]) if i + 1 < n else None
+        behind = -se3_log(invert(poses[i]) @ poses[i - 1]) if i > 0 else None
+        steps = [s for s in (ahead, behind) if s is not None]
+        velocity = np.mean(steps, axis=0) if steps else np.zeros(6)
+        offsets[i] = [-0.5 * fraction * velocity, 0.5 * fraction * velocity]
+    return offsets
+
+
+def exposure_px(d_start: np.ndarray, d_end: np.ndarray, focal: float, depth: float) -> float:
+    """Approximate image travel (pixels) over an exposure for points at ``depth``."""
+    delta = np.asarray(d_end) - np.asarray(d_start)
+    return float(focal * (np.linalg.norm(delta[:3]) / depth + np.linalg.norm(delta[3:])))
+
+
+def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, depth: float) -> np.ndarray:
+    """Re-open an exposure that closed below ``min_px`` on the image: stretch d_e - d_s about its
+    middle (or, if it vanished, take ``fallback``'s direction) to ``min_px``."""
+    span = exposure_px(d[0], d[1], focal, depth)
+    if span >= min_px:
+        return d
+    middle = 0.5 * (d[0] + d[1])
+    half = 0.5 * (d[1] - d[0]) if span > 1e-3 * min_px else 0.5 * (fallback[1] - fallback[0])
+    scale = min_px / max(exposure_px(-half, half, focal, depth), 1e-12)
+    return np.stack([middle - scale * half, middle + scale * half])
+
+
+class ExposureAdam:
+    """Adam on the (N, 2, 6) exposure offsets, one frame at a time, on the host."""
+
+    def __init__(self, n_frames: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8):
+        self.moments = np.zeros((n_frames, 2, 2, 6))
+        self.steps = np.zeros(n_frames, dtype=np.int64)
+        self.beta1, self.beta2, self.eps = beta1, beta2, eps
+
+    def step(self, d: np.ndarray, grad: np.ndarray, frame: int, lr: float) -> np.ndarray:
+        """Updated (2, 6) offsets of ``frame`` given their gradient."""
+        self.steps[frame] += 1
+        t = self.steps[frame]
+        m, v = self.moments[frame]
+        m[:] = self.beta1 * m + (1 - self.beta1) * grad
+        v[:] = self.beta2 * v + (1 - self.beta2) * grad**2
+        return d - lr * (m / (1 - self.beta1**t)) / (np.sqrt(v / (1 - self.beta2**t)) + self.eps)
+
+
+def _downsample_color(color: np.ndarray, scale: int) -> np.ndarray:
+    """Area average over scale x scale blocks (pixel i covers inputs scale*i .. scale*i + scale - 1)."""
+    if scale == 1:
+        return color
+    h, w = color.shape[0] // scale, color.shape[1] // scale
+    return np.ascontiguousarray(color[: h * scale, : w * scale].reshape(h, scale, w, scale, 3).mean(axis=(1, 3)))
+
+
+def _area_intrinsics(K: np.ndarray, scale: int) -> np.ndarray:
+    """Intrinsics of the block-averaged image (block centre at scale*i + (scale - 1)/2)."""
+    K = _scaled_intrinsics(K, scale)
+    K[0, 2] += (scale // 2 - (scale - 1) / 2) / scale
+    K[1, 2] += (scale // 2 - (scale - 1) / 2) / scale
+    return K
+
+
+def _median_depth(depth: np.ndarray) -> float:
+    valid = depth[depth > 0]
+    return float(np.median(valid)) if valid.size else 1.0
+
+
+@dataclass
+class _Frames:
+    """The sequence at training resolution."""
+
+    colors: list[np.ndarray]
+    depths: list[np.ndarray]
+    median_depth: np.ndarray
+    K: np.ndarray
+
+
+def _load_frames(sequence: Sequence, scale: int) -> _Frames:
+    colors = [_downsample_color(sequence.color(i), scale) for i in range(len(sequence))]
+    h, w = colors[0].shape[:2]
+    depths = [_downsample_depth(sequence.depth(i), scale)[:h, :w] for i in range(len(sequence))]
+    return _Frames(colors, depths, np.array([_median_depth(d) for d in depths]), _area_intrinsics(sequence.K(), scale))
+
+
+def _scene_extent(poses: np.ndarray, means: np.ndarray) -> float:
+    """Radius of the scene: the 90th percentile distance of the Gaussians from the cameras' centroid."""
+    centre = poses[:, :3, 3].mean(axis=0)
+    return float(max(np.percentile(np.linalg.norm(means - centre, axis=1), 90), 1e-3))
+
+
+def run_deblur(
+    sequence: Sequence,
+    out_dir: Path,
+    config: DeblurConfig,
+    progress: Callable[..., None] | None = None,
+) -> DeblurResult:
+    """Train the sharp scene and every training frame's exposure from OUT/refine/; write OUT/deblur/."""
+    if config.k < 1:
+        raise InputError(None, f"k must be at least 1, got {config.k}", "set [deblur] k or --k to 1 or more")
+    out_dir = Path(out_dir)
+    poses, splats = load_stage2(out_dir, len(sequence))
+    stage_dir = out_dir / "deblur"
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    train, test = split_frames(len(sequence), config.holdout_every)
+    frames = _load_frames(sequence, config.resolution_scale)
+    height, width = frames.colors[0].shape[:2]
+    splats = with_sh_degree(splats, config.sh_degree)
+    extent = _scene_extent(poses, splats.means)
+    model = BlurScene(splats, frames.K, width, height)
+    start = initial_offsets(poses, config.initial_exposure_fraction)
+    offsets = start.copy()
+    exposure_adam = ExposureAdam(len(sequence))
+    rng = np.random.default_rng(config.seed)
+    history: list[dict[str, float]] = []
+    first = 0
+
+    checkpoint = stage_dir / "checkpoint.npz"
+    if checkpoint.is_file():
+        first, offsets, rng, history = _load_checkpoint(checkpoint, config, model, exposure_adam, offsets, rng, history)
+
+    t0 = time.perf_counter()
+    for it in range(first, config.iterations):
+        fraction = it / max(config.iterations - 1, 1)
+        frame = train[int(rng.integers(len(train)))]
+        rates = Rates(means=_exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
+                      quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
+                      colors=config.lr_colors)
+        step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
+                          config.k, config.lambda_dssim, config.lambda_depth, rates)
+        _check_finite(step, it)
+        if it >= config.exposure_from:
+            lr_exposure = _exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
+            updated = exposure_adam.step(offsets[frame], np.stack([step.grad_start, step.grad_end]), frame, lr_exposure)
+            offsets[frame] = keep_open(updated, start[frame], config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
+        loss = (1 - config.lambda_dssim) * step.losses["l1"] + config.lambda_dssim * step.losses["dssim"] \
+            + config.lambda_depth * step.losses["depth"]
+        if (it + 1) % 10 == 0 or it == config.iterations - 1:
+            history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
+        _adapt_density(model, it + 1, config, extent, rng)
+        if progress is not None:
+            progress(it + 1, config.iterations, loss=loss, psnr=step.psnr, gaussians=model.count)
+        if (it + 1) % config.checkpoint_every == 0 and it + 1 < config.iterations:
+            _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history)
+    seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
+
+    for frame in test:
+        offsets[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame], frame, config)
+    warnings = _step_warnings(offsets, train, frames, config)
+    result = DeblurResult(
+        mid_poses=np.stack([virtual_pose(poses[i], *offsets[i], 0.5) for i in range(len(sequence))]),
+        exposure=np.stack([[virtual_pose(poses[i], *offsets[i], tau) for tau in (0.0, 1.0)] for i in range(len(sequence))]),
+        train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
+        warnings=warnings,
+    )
+    _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config)
+    if checkpoint.is_file():
+        checkpoint.unlink()
+    return result
+
+
+def _check_finite(step, iteration: int) -> None:
+    values = [*step.losses.values(), *step.grad_start, *step.grad_end]
+    if not np.all(np.isfinite(values)):
+        raise FloatingPointError(f"stage 3 (deblur) diverged at iteration {iteration}: non-finite loss or gradient")
+
+
+def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: float, rng: np.random.Generator) -> None:
+    """3DGS's schedule: densify and prune every ``densify_every`` iterations in the densification
+    window; reset opacities every ``reset_opacity_every`` iterations inside it."""
+    if config.densify_from <= done <= config.densify_until and done % config.densify_every == 0:
+        # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
+        model.densify_and_prune(config.densify_grad * 2.0 / model.width, config.split_scale * extent,
+                                config.prune_opacity, config.prune_scale * extent, config.max_gaussians, rng)
+    if config.reset_opacity_every and done % config.reset_opacity_every == 0 and done < config.densify_until:
+        model.reset_opacity(0.01)
+
+
+def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
+                          frame: int, config: DeblurConfig) -> np.ndarray:
+    """Fit a held-out frame's exposure offsets, scene frozen, by re-blurring against its blurred input."""
+    adam = ExposureAdam(1)
+    for it in range(config.test_pose_iterations):
+        step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], config.k,
+                          config.lambda_dssim, 0.0, rates=None)
+        _check_finite(step, it)
+        d = adam.step(d, np.stack([step.grad_start, step.grad_end]), 0, config.lr_test_pose)
+        d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
+    return d
+
+
+def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, config: DeblurConfig) -> list[str]:
+    """A warning if adjacent virtual views move more than ``max_step_px`` (k is then too small)."""
+    if config.k < 2:
+        return []
+    steps = [exposure_px(*offsets[i], frames.K[0, 0], frames.median_depth[i]) / (config.k - 1) for i in train]
+    worst = int(np.argmax(steps))
+    if steps[worst] <= config.max_step_px:
+        return []
+    return [f"adjacent virtual views move up to {steps[worst]:.1f} px (frame {train[worst]}) at the training "
+            f"resolution, more than {config.max_step_px:g} px: k = {config.k} is likely too small for this blur"]
+
+
+def _save_checkpoint(path: Path, iteration: int, config: DeblurConfig, model: BlurScene, exposure_adam: ExposureAdam,
+                     offsets: np.ndarray, rng: np.random.Generator, history: list[dict[str, float]]) -> None:
+    arrays = {f"model_{k}": v for k, v in model.state().items()}
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, iteration=iteration, config=json.dumps(dataclasses.asdict(config)), offsets=offsets,
+                     exposure_moments=exposure_adam.moments, exposure_steps=exposure_adam.steps,
+                     rng=json.dumps(rng.bit_generator.state), history=json.dumps(history), **arrays)
+
+
+def _load_checkpoint(path: Path, config: DeblurConfig, model: BlurScene, exposure_adam: ExposureAdam, offsets: np.ndarray,
+                     rng: np.random.Generator, history: list) -> tuple[int, np.ndarray, np.random.Generator, list]:
+    """Resume state from a checkpoint made with the same config (else start afresh)."""
+    state = np.load(path, allow_pickle=False)
+    if json.loads(str(state["config"])) != dataclasses.asdict(config) or state["offsets"].shape != offsets.shape:
+        return 0, offsets, rng, history
+    model.load_state({k[6:]: state[k] for k in state.files if k.startswith("model_")})
+    exposure_adam.moments, exposure_adam.steps = state["exposure_moments"].copy(), state["exposure_steps"].copy()
+    rng.bit_generator.state = json.loads(str(state["rng"]))
+    return int(state["iteration"]), state["offsets"].copy(), rng, json.loads(str(state["history"]))
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """RGB float image in [0, 1] (8-bit) or a uint16 image, written atomically."""
+    if image.dtype != np.uint16:
+        image = cv2.cvtColor(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), image):
+            raise OSError(f"could not write {path}")
+
+
+def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
+                   result: DeblurResult, config: DeblurConfig) -> None:
+    write_splats(stage_dir / "splats.ply", splats)
+    write_tum(stage_dir / "trajectory.txt", sequence.timestamps, result.mid_poses,
+              header="taichi-gs stage 3 (deblur), mid-exposure camera-to-world")
+    write_text(stage_dir / "exposure.txt", _format_exposure(sequence.timestamps, result.exposure))
+    write_text(stage_dir / "split.json", json.dumps({"train": result.train, "test": result.test,
+                                                     "holdout_every": config.holdout_every}, indent=2) + "\n")
+    _write_renders(stage_dir, sequence, splats, poses, offsets, config)
+    history = result.loss_history
+    if history:
+        it = np.array([h["iteration"] for h in history], dtype=float)
+        line_plot(stage_dir / "loss.png", {"loss": (it, np.array([h["loss"] for h in history]))},
+                  "stage 3: deblurring loss", "iteration", "loss", log_y=True)
+    write_text(stage_dir / "history.json", json.dumps(history) + "\n")
+
+
+def _format_exposure(timestamps: np.ndarray, exposure: np.ndarray) -> str:
+    """``timestamp`` then start and end poses as ``tx ty tz qx qy qz qw`` each, one frame a line."""
+    starts = format_tum(timestamps, exposure[:, 0]).splitlines()
+    ends = format_tum(timestamps, exposure[:, 1]).splitlines()
+    lines = ["# timestamp start(tx ty tz qx qy qz qw) end(tx ty tz qx qy qz qw), camera-to-world"]
+    lines += [f"{s} {e.split(maxsplit=1)[1]}" for s, e in zip(starts, ends)]
+    return "\n".join(lines) + "\n"
+
+
+def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
+                   config: DeblurConfig) -> None:
+    """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame, and a grid."""
+    first = sequence.color(0)
+    full = BlurScene(splats, sequence.K(), first.shape[1], first.shape[0])
+    scale = sequence.intrinsics.depth_scale
+    rows = []
+    grid_frames = set(_grid_frames(len(sequence), config))
+    for i, name in enumerate(sequence.names):
+        sharp, depth = full.render(virtual_pose(poses[i], *offsets[i], 0.5))
+        reblurred = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], config.k)
+        _write_png(stage_dir / "renders" / "sharp" / f"{name}.png", sharp)
+        _write_png(stage_dir / "renders" / "reblurred" / f"{name}.png", reblurred)
+        _write_png(stage_dir / "renders" / "depth" / f"{name}.png",
+                   np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16))
+        if i in grid_frames:
+            row = [sequence.color(i), sharp] + ([sequence.sharp(i)] if sequence.sharp_paths is not None else [])
+            rows.append(np.concatenate(row, axis=1))
+    _write_png(stage_dir / "grid.png", np.concatenate(rows, axis=0))
+
+
+def _grid_frames(n_frames: int, config: DeblurConfig) -> list[int]:
+    """A few frames spread over the sequence, test views first when there are any."""
+    test = split_frames(n_frames, config.holdout_every)[1]
+    pool = test or list(range(n_frames))
+    picks = np.linspace(0, len(pool) - 1, min(config.grid_frames, len(pool))).round().astype(int)
+    return [pool[p] for p in sorted(set(picks))]

@@ -1,0 +1,39 @@
+"""Stand-in stage-2 outputs for stage-3 tests and benchmarks: OUT/refine/ built from a synthetic
+sequence's ground-truth mid-exposure poses and its sensor depth (so stage 3 is measured alone)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from taichi_gs.geometry import backproject, transform
+from taichi_gs.io.ply import write_splats
+from taichi_gs.io.sequence import Sequence
+from taichi_gs.io.trajectory import write_tum
+from taichi_gs.splats import splats_from_points
+
+
+def fused_points(sequence: Sequence, poses: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every frame's depth back-projected with ``poses``, averaged per voxel: points and colours."""
+    points, colors = [], []
+    for i in range(len(sequence)):
+        depth = sequence.depth(i)
+        valid = depth > 0
+        points.append(transform(poses[i], backproject(depth, sequence.K())[valid]))
+        colors.append(sequence.color(i)[valid])
+    points, colors = np.concatenate(points), np.concatenate(colors)
+    _, inverse, counts = np.unique(np.floor(points / voxel).astype(np.int64), axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    mean = lambda x: np.stack([np.bincount(inverse, x[:, c]) for c in range(3)], axis=1) / counts[:, None]  # noqa: E731
+    return mean(points), mean(colors)
+
+
+def write_refine_outputs(sequence: Sequence, out: Path, voxel: float = 0.03, opacity: float = 0.9) -> None:
+    """OUT/refine/trajectory.txt (ground-truth mid poses) and splats.ply (fused depth), OUT/run.json."""
+    poses = sequence.gt_poses
+    points, colors = fused_points(sequence, poses, voxel)
+    write_splats(out / "refine" / "splats.ply", splats_from_points(points, np.clip(colors, 0, 1), voxel / 2, opacity))
+    write_tum(out / "refine" / "trajectory.txt", sequence.timestamps, poses, header="ground-truth stand-in for stage 2")
+    (out / "run.json").write_text(json.dumps({"sequence": str(Path(sequence.root).resolve())}))

@@ -1,0 +1,106 @@
+"""Stage 3 (deblurring): helpers, bad input, and a short synthetic extreme-blur run against ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from taichi_gs.errors import InputError
+from taichi_gs.evaluate import psnr, ssim
+from taichi_gs.geometry import backproject, invert, project, se3_exp, transform
+from taichi_gs.io.ply import read_splats
+from taichi_gs.io.trajectory import read_tum, read_tum_rows, tum_rows_to_poses
+from taichi_gs.render import virtual_pose
+from taichi_gs.stages.deblur import (
+    PRESETS, exposure_px, initial_offsets, keep_open, load_stage2, run_deblur, split_frames,
+)
+
+synth = pytest.importorskip("taichi_gs.synth")
+
+
+def test_every_third_frame_is_held_out_and_none_trains_on_all():
+    train, test = split_frames(9, 3)
+    assert test == [1, 4, 7] and train == [0, 2, 3, 5, 6, 8]
+    assert split_frames(5, 0) == ([0, 1, 2, 3, 4], [])
+
+
+def test_initial_exposures_are_open_and_opposite():
+    poses = np.stack([se3_exp(np.array([0.01 * i, 0, 0, 0, 0.02 * i, 0])) for i in range(4)])
+    offsets = initial_offsets(poses, 0.5)
+    assert np.allclose(offsets[:, 0], -offsets[:, 1])
+    assert np.all(np.linalg.norm(offsets[:, 1] - offsets[:, 0], axis=1) > 1e-3)
+
+
+def test_collapsed_exposure_is_reopened_to_the_minimum_spread():
+    fallback = np.array([[-0.01, 0, 0, 0, 0, 0], [0.01, 0, 0, 0, 0, 0]])
+    collapsed = np.zeros((2, 6))
+    reopened = keep_open(collapsed, fallback, min_px=0.5, focal=100.0, depth=2.0)
+    assert exposure_px(*reopened, focal=100.0, depth=2.0) == pytest.approx(0.5)
+    assert np.allclose(reopened.sum(axis=0), 0.0)
+    wide = 10 * fallback
+    assert keep_open(wide, fallback, 0.5, 100.0, 2.0) is wide
+
+
+def test_missing_stage2_output_is_an_input_error(tmp_path):
+    with pytest.raises(InputError, match="stage-2 output missing"):
+        load_stage2(tmp_path, 3)
+
+
+def _exposure_px_error(sequence, frames, estimate) -> float:
+    """Mean image distance (pixels) between points seen through the estimated and the true
+    start/end poses (image distance, since rotation and translation trade off in the twist)."""
+    K, errors = sequence.K(), []
+    for i in frames:
+        depth = sequence.depth(i)
+        points = transform(sequence.gt_poses[i], backproject(depth, K)[depth > 0])
+        for j in (0, 1):
+            seen_est = project(transform(invert(estimate[i][j]), points), K)
+            seen_true = project(transform(invert(sequence.exposure_poses[i, j]), points), K)
+            errors.append(np.linalg.norm(seen_est - seen_true, axis=1).mean())
+    return float(np.mean(errors))
+
+
+def _read_rgb(path) -> np.ndarray:
+    return cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+
+
+def test_extreme_blur_held_out_views_get_sharper_and_exposures_approach_truth(tmp_path):
+    from synthetic_refine import write_refine_outputs
+    from taichi_gs.io.sequence import load_sequence
+
+    synth.generate(synth.SynthConfig(width=96, height=72, frames=9, trajectory="handheld", blur="extreme", seed=1),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    out = tmp_path / "out"
+    write_refine_outputs(sequence, out, voxel=0.05)
+    config = dataclasses.replace(PRESETS["fast"], k=5, iterations=200, resolution_scale=1, densify_from=100,
+                                 densify_until=150, exposure_from=60, test_pose_iterations=10,
+                                 checkpoint_every=100)
+    result = run_deblur(sequence, out, config)
+
+    stage = out / "deblur"
+    assert json.loads((stage / "split.json").read_text())["test"] == [1, 4, 7]
+    for i in result.test:
+        ours = _read_rgb(stage / "renders" / "sharp" / f"{sequence.names[i]}.png")
+        sharp, blurred = sequence.sharp(i), sequence.color(i)
+        assert psnr(ours, sharp) > psnr(blurred, sharp)
+        assert ssim(ours, sharp) > ssim(blurred, sharp)
+
+    initial = initial_offsets(sequence.gt_poses, config.initial_exposure_fraction)
+    before = [[virtual_pose(sequence.gt_poses[i], *initial[i], tau) for tau in (0.0, 1.0)] for i in range(len(sequence))]
+    assert _exposure_px_error(sequence, result.train, result.exposure) < 0.8 * _exposure_px_error(sequence, result.train, before)
+
+    rows = read_tum_rows(stage / "exposure.txt", columns=15)
+    assert np.allclose(tum_rows_to_poses(rows[:, :8]), result.exposure[:, 0], atol=1e-6)
+    assert np.allclose(read_tum(stage / "trajectory.txt")[1], result.mid_poses, atol=1e-6)
+    assert len(read_splats(stage / "splats.ply")) == result.gaussians
+    for kind in ("sharp", "reblurred", "depth"):
+        assert sorted(p.stem for p in (stage / "renders" / kind).glob("*.png")) == sorted(sequence.names)
+    depth = cv2.imread(str(stage / "renders" / "depth" / f"{sequence.names[0]}.png"), cv2.IMREAD_UNCHANGED)
+    assert depth.dtype == np.uint16 and depth.shape == (72, 96)
+    assert cv2.imread(str(stage / "grid.png")).shape[1] == 3 * 96
+    assert not (stage / "checkpoint.npz").exists()
