@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError
+from .geometry import backproject, project, transform
 from .io.atomic import atomic_path
 
 FLO_MAGIC = 202021.25  # Middlebury .flo tag ("PIEH" as a float32)
@@ -43,12 +44,39 @@ def to_gray_u8(color: np.ndarray) -> np.ndarray:
     return np.clip(np.round(gray * 255.0), 0, 255).astype(np.uint8)
 
 
-def dis_flow(gray_a: np.ndarray, gray_b: np.ndarray, preset: str = "medium") -> np.ndarray:
-    """DIS optical flow (Kroeger et al. 2016) from 8-bit grey image a to b."""
+def dis_flow(gray_a: np.ndarray, gray_b: np.ndarray, preset: str = "medium", initial: np.ndarray | None = None) -> np.ndarray:
+    """DIS optical flow (Kroeger et al. 2016) from 8-bit grey image a to b.
+
+    ``initial`` (H x W x 2, finite) seeds the coarsest pyramid level instead of zero flow, so motions
+    larger than DIS's coarse-to-fine search range can be followed when a guess of them is known.
+    """
     if preset not in DIS_PRESETS:
         raise ValueError(f"unknown DIS preset {preset!r}; use one of {', '.join(DIS_PRESETS)}")
     dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
-    return dis.calc(gray_a, gray_b, None).astype(np.float32)
+    seed = None if initial is None else np.array(initial, dtype=np.float32, order="C")
+    return dis.calc(gray_a, gray_b, seed).astype(np.float32)
+
+
+def rigid_flow(depth: np.ndarray, K: np.ndarray, T: np.ndarray, fill_holes: bool = False) -> np.ndarray:
+    """Flow that the camera motion T (camera a -> camera b) induces on the pixels of a depth map of a.
+
+    Pixels without depth are NaN, or with ``fill_holes`` moved as if at the median valid depth (a
+    finite seed for :func:`dis_flow`; zero flow where no depth is valid at all).
+    """
+    valid = depth > 0
+    if fill_holes:
+        if not valid.any():
+            return np.zeros((*depth.shape, 2), np.float32)
+        depth = np.where(valid, depth, np.median(depth[valid]))
+    h, w = depth.shape
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        moved = project(transform(T, backproject(depth, K)), K)
+    flow = np.stack([moved[..., 0] - u, moved[..., 1] - v], axis=-1)
+    if fill_holes:
+        return np.nan_to_num(flow, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+    flow[~valid] = np.nan
+    return flow.astype(np.float32)
 
 
 class DISFlow:

@@ -53,17 +53,22 @@ def multiscale_point_to_plane(
     distance_factor: float,
     normal_radius_factor: float,
     normal_max_nn: int,
+    max_points: int = 0,
 ) -> ICPResult:
     """Point-to-plane ICP from coarse to fine voxel sizes; each level starts from the previous one.
 
     At voxel size v the clouds are downsampled to v, target normals use radius normal_radius_factor v,
-    and correspondences farther than distance_factor v are ignored. Fitness and RMSE are the finest level's.
+    and correspondences farther than distance_factor v are ignored. With ``max_points`` > 0 every voxel
+    size grows by steps of 25% until the finest level leaves at most that many source points (ICP
+    time grows faster than linearly with density). Fitness and RMSE are the finest level's.
     """
     if len(voxel_sizes) != len(iterations):
         raise ValueError(f"{len(voxel_sizes)} ICP voxel sizes but {len(iterations)} iteration counts")
     registration = o3d.pipelines.registration
     transform = np.asarray(init, dtype=np.float64)
     fitness, rmse = 0.0, float("inf")
+    scale = _voxel_scale(source, min(voxel_sizes), max_points)
+    voxel_sizes = tuple(scale * v for v in voxel_sizes)
     finest = min(voxel_sizes)
     source, target = source.voxel_down_sample(finest), target.voxel_down_sample(finest)
     for voxel, steps in zip(voxel_sizes, iterations):
@@ -78,3 +83,45 @@ def multiscale_point_to_plane(
         transform = np.asarray(result.transformation).copy()
         fitness, rmse = float(result.fitness), float(result.inlier_rmse)
     return ICPResult(transform, fitness, rmse)
+
+
+def _voxel_scale(cloud: o3d.geometry.PointCloud, voxel: float, max_points: int) -> float:
+    """Smallest factor 1.25^k by which ``voxel`` must grow to leave at most ``max_points`` points (1 if no cap)."""
+    scale = 1.0
+    while max_points > 0 and len(cloud.voxel_down_sample(scale * voxel).points) > max_points:
+        scale *= 1.25
+    return scale
+
+
+def rgbd_odometry(
+    color_t: np.ndarray,
+    depth_t: np.ndarray,
+    color_t1: np.ndarray,
+    depth_t1: np.ndarray,
+    K: np.ndarray,
+    init: np.ndarray,
+    iterations: tuple[int, ...] = (20, 10, 5),
+    depth_diff_max: float = 0.07,
+    depth_range: tuple[float, float] = (0.1, 10.0),
+) -> np.ndarray | None:
+    """Open3D's dense RGB-D odometry (hybrid photometric + depth term, coarse to fine, one pyramid
+    level per entry of ``iterations``) from ``init``: transform camera t -> t+1, or None if it fails.
+
+    Colours are RGB floats in [0, 1], depths metres (0 = invalid).
+    """
+    h, w = depth_t.shape
+    camera = o3d.camera.PinholeCameraIntrinsic(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    option = o3d.pipelines.odometry.OdometryOption(
+        iteration_number_per_pyramid_level=o3d.utility.IntVector([int(i) for i in iterations]),
+        depth_diff_max=depth_diff_max, depth_min=depth_range[0], depth_max=depth_range[1])
+    ok, transform, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
+        _rgbd(color_t, depth_t, depth_range[1]), _rgbd(color_t1, depth_t1, depth_range[1]), camera,
+        np.asarray(init, dtype=np.float64), o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(), option)
+    return np.asarray(transform).copy() if ok else None
+
+
+def _rgbd(color: np.ndarray, depth: np.ndarray, max_depth: float) -> o3d.geometry.RGBDImage:
+    rgb = o3d.geometry.Image(np.ascontiguousarray(np.clip(color * 255.0, 0, 255).astype(np.uint8)))
+    z = o3d.geometry.Image(np.ascontiguousarray(depth, dtype=np.float32))
+    return o3d.geometry.RGBDImage.create_from_color_and_depth(rgb, z, depth_scale=1.0, depth_trunc=max_depth,
+                                                              convert_rgb_to_intensity=True)

@@ -7,7 +7,8 @@ import pytest
 from test_pose_scene import MOTION, exact_flow, pair
 
 from taichi_gs.errors import InputError
-from taichi_gs.flow import FileFlow, dis_flow, forward_backward_mask, read_flow, to_gray_u8, write_flow
+from taichi_gs.flow import FileFlow, dis_flow, forward_backward_mask, read_flow, rigid_flow, to_gray_u8, write_flow
+from taichi_gs.geometry import se3_exp
 
 
 def random_flow(h: int = 12, w: int = 17, seed: int = 0) -> np.ndarray:
@@ -75,3 +76,26 @@ def test_dis_flow_is_subpixel_on_the_test_scene():
     flow = dis_flow(to_gray_u8(color_t), to_gray_u8(color_t1), "medium")
     error = np.linalg.norm(flow - exact_flow(depth_t, K, MOTION), axis=-1)
     assert np.median(error[20:-20, 20:-20]) < 0.3
+
+
+def test_rigid_flow_is_the_exact_flow_and_fills_holes_when_asked():
+    _, depth_t, _, _, K = pair(MOTION)
+    np.testing.assert_allclose(rigid_flow(depth_t, K, MOTION), exact_flow(depth_t, K, MOTION), atol=1e-3)
+    holed = depth_t.copy()
+    holed[:10] = 0.0
+    assert np.isnan(rigid_flow(holed, K, MOTION)[:10]).all()
+    filled = rigid_flow(holed, K, MOTION, fill_holes=True)
+    assert np.isfinite(filled).all()
+    np.testing.assert_allclose(filled[10:], exact_flow(depth_t, K, MOTION)[10:], atol=1e-3)
+    assert not rigid_flow(np.zeros_like(depth_t), K, MOTION, fill_holes=True).any()
+
+
+def test_seeded_dis_follows_a_motion_that_unseeded_dis_loses():
+    motion = se3_exp(np.array([0.02, 0.0, 0.01, 0.0, np.radians(12.0), 0.0]))
+    guess = se3_exp(np.array([0.0, 0.0, 0.0, 0.0, np.radians(10.0), 0.0]))
+    color_t, depth_t, color_t1, _, K = pair(motion)
+    a, b = to_gray_u8(color_t), to_gray_u8(color_t1)
+    exact = exact_flow(depth_t, K, motion)
+    unseeded = np.median(np.linalg.norm(dis_flow(a, b) - exact, axis=-1))
+    seeded = np.median(np.linalg.norm(dis_flow(a, b, initial=rigid_flow(depth_t, K, guess, fill_holes=True)) - exact, axis=-1))
+    assert unseeded > 10.0 and seeded < 0.5  # ~40 px and ~0.2 px measured

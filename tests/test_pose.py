@@ -77,6 +77,44 @@ def test_icp_that_jumps_away_keeps_the_flow_estimate():
     np.testing.assert_array_equal(result.transform, result.flow_transform)
 
 
+def test_pair_beyond_dis_range_is_recovered_with_prior_seeded_flow():
+    motion = se3_exp(np.array([0.02, 0.0, 0.01, 0.0, np.radians(12.0), 0.0]))  # ~30 px at 160x120
+    prior = se3_exp(np.array([0.0, 0.0, 0.0, 0.0, np.radians(10.0), 0.0]))  # constant-velocity guess, 2 deg off
+    color_t, depth_t, color_t1, depth_t1, K = pair(motion)
+    unseeded = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig(seeded_retry=False), prior=prior)
+    assert unseeded.weak and unseeded.flow_seed == "none"
+    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig(), prior=prior)
+    assert not result.weak and result.flow_seed == "constant-velocity" and result.estimate == "icp"
+    assert result.reason.startswith("unseeded flow failed")
+    assert np.linalg.norm(result.transform[:3, 3] - motion[:3, 3]) < 0.01  # 4.6 mm measured
+    assert rotation_error_deg(result.transform, motion) < 0.15  # 0.06 deg measured
+
+
+def test_rgbd_refinement_replaces_the_icp_estimate_when_it_stays_close():
+    color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
+    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig(rgbd_refine=True))
+    assert not result.weak and result.estimate == "rgbd"
+    assert np.linalg.norm(result.transform[:3, 3] - MOTION[:3, 3]) < 5e-3  # 2.1 mm measured (ICP alone: 0.8 mm)
+    assert rotation_error_deg(result.transform, MOTION) < 0.15  # 0.06 deg measured
+    guarded = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K,
+                                     config=PoseConfig(rgbd_refine=True, icp_max_jump_m=1e-4, icp_max_jump_deg=2.0))
+    assert guarded.estimate != "rgbd"  # a refinement moving > 0.1 mm is not kept
+
+
+def test_icp_point_cap_coarsens_the_voxels_and_stays_accurate():
+    from taichi_gs.icp import _voxel_scale, depth_cloud, multiscale_point_to_plane
+
+    _, depth_t, _, depth_t1, K = pair(MOTION, 320, 240)
+    source, target = (depth_cloud(d, K, d > 0) for d in (depth_t, depth_t1))
+    assert _voxel_scale(source, 0.01, 0) == 1.0
+    scale = _voxel_scale(source, 0.01, 20000)  # 76k points at 1 cm
+    assert scale > 1.0 and len(source.voxel_down_sample(0.01 * scale).points) <= 20000
+    assert len(source.voxel_down_sample(0.01 * scale / 1.25).points) > 20000
+    result = multiscale_point_to_plane(source, target, np.eye(4), (0.04, 0.02, 0.01), (30, 20, 15), 2.0, 3.0, 30, max_points=20000)
+    assert np.linalg.norm(result.transform[:3, 3] - MOTION[:3, 3]) < 2e-3  # 0.7 mm measured (no cap: 0.04 mm)
+    assert rotation_error_deg(result.transform, MOTION) < 0.1
+
+
 @pytest.fixture(scope="module")
 def walk_sequence() -> SceneSequence:
     return SceneSequence(walk(5))

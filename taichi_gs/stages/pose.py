@@ -22,9 +22,9 @@ import open3d as o3d
 
 from ..config import write_config
 from ..errors import InputError
-from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, to_gray_u8
+from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, rigid_flow, to_gray_u8
 from ..geometry import invert, se3_log
-from ..icp import depth_cloud, multiscale_point_to_plane, reliable_depth_mask
+from ..icp import depth_cloud, multiscale_point_to_plane, reliable_depth_mask, rgbd_odometry
 from ..io.atomic import write_text
 from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
@@ -32,7 +32,7 @@ from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
 from .pose_solver import SolverSettings, solve
 
 # Estimate kinds recorded per pair.
-FROM_ICP, FROM_FLOW, FROM_CONSTANT_VELOCITY = "icp", "flow", "constant-velocity"
+FROM_RGBD, FROM_ICP, FROM_FLOW, FROM_CONSTANT_VELOCITY = "rgbd", "icp", "flow", "constant-velocity"
 
 
 @dataclass(frozen=True)
@@ -42,6 +42,7 @@ class PoseConfig:
     # Optical flow
     flow_dir: str = ""  # precomputed flows (see taichi_gs.flow); empty: OpenCV DIS
     flow_preset: str = "medium"  # DIS preset: ultrafast | fast | medium
+    seeded_retry: bool = True  # weak pair: redo it with DIS seeded by the prior's flow, then by rejected ICP's
     fb_alpha: float = 0.01  # forward-backward check: |f + b|^2 < alpha (|f|^2 + |b|^2) + beta
     fb_beta: float = 0.5  # px^2
     # Pixels used by the solver
@@ -72,9 +73,15 @@ class PoseConfig:
     icp_distance_factor: float = 2.0  # correspondence distance = factor x voxel
     icp_normal_radius_factor: float = 3.0
     icp_normal_max_nn: int = 30
+    icp_max_points: int = 80000  # finest level's cap: voxels grow until the source has no more points
     icp_min_fitness: float = 0.3  # below: keep the flow estimate, flag the pair
     icp_max_jump_m: float = 0.05  # ICP moving farther from the flow estimate: keep the flow estimate
     icp_max_jump_deg: float = 2.0
+    # [ours] optional last step: Open3D dense RGB-D odometry (hybrid term) from the ICP estimate,
+    # kept unless it fails or jumps farther than the ICP guards allow
+    rgbd_refine: bool = False
+    rgbd_iterations: tuple = (20, 10, 5)  # per pyramid level, coarse to fine
+    rgbd_depth_diff_max_m: float = 0.07
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
 
@@ -99,8 +106,9 @@ class RelativePose:
     """Transform camera t -> camera t+1 and how it was obtained."""
 
     transform: np.ndarray
-    estimate: str  # icp | flow | constant-velocity
+    estimate: str  # rgbd | icp | flow | constant-velocity
     weak: bool = False
+    flow_seed: str = "none"  # none | constant-velocity | icp: the motion whose flow seeded DIS
     reason: str = ""
     flow_transform: np.ndarray | None = None
     flow_residual_px: float = float("nan")  # median |F(p_i) - (p_j - p_i)| at the final transform
@@ -109,11 +117,12 @@ class RelativePose:
     icp_fitness: float = float("nan")
     icp_inlier_rmse_m: float = float("nan")
     seconds: float = 0.0
+    icp_transform: np.ndarray | None = None  # ICP's own result, also when rejected (not saved)
 
     def to_dict(self) -> dict:
         return {
             "transform": self.transform.tolist(),
-            "estimate": self.estimate, "weak": self.weak, "reason": self.reason,
+            "estimate": self.estimate, "weak": self.weak, "flow_seed": self.flow_seed, "reason": self.reason,
             "flow_transform": None if self.flow_transform is None else self.flow_transform.tolist(),
             "flow_residual_px": _finite_or_none(self.flow_residual_px), "points": self.points,
             "iterations": list(self.iterations), "icp_fitness": _finite_or_none(self.icp_fitness),
@@ -124,7 +133,8 @@ class RelativePose:
     def from_dict(cls, d: dict) -> RelativePose:
         nan = float("nan")
         return cls(
-            transform=np.array(d["transform"], dtype=np.float64), estimate=d["estimate"], weak=d["weak"], reason=d["reason"],
+            transform=np.array(d["transform"], dtype=np.float64), estimate=d["estimate"], weak=d["weak"],
+            flow_seed=d["flow_seed"], reason=d["reason"],
             flow_transform=None if d["flow_transform"] is None else np.array(d["flow_transform"], dtype=np.float64),
             flow_residual_px=nan if d["flow_residual_px"] is None else d["flow_residual_px"], points=d["points"],
             iterations=tuple(d["iterations"]), icp_fitness=nan if d["icp_fitness"] is None else d["icp_fitness"],
@@ -157,17 +167,59 @@ def estimate_relative_pose(
     backward_flow: np.ndarray | None = None,
     prior: np.ndarray | None = None,
 ) -> RelativePose:
-    """Transform camera t -> t+1 minimising L_F, then L_F + l_I L_I + l_C L_C, then refined by ICP.
+    """Transform camera t -> t+1 minimising L_F, then L_F + l_I L_I + l_C L_C, then refined by ICP
+    (and, with ``rgbd_refine``, by dense RGB-D odometry).
 
-    Without ``flow``, forward and backward DIS flows are computed. ``prior`` (default identity) is
-    returned, flagged weak, when the pair cannot be aligned.
+    Without ``flow``, forward and backward DIS flows are computed. When that estimate is weak, the
+    pair is redone with DIS flows seeded by the flow of a guessed motion (``prior``, the
+    constant-velocity guess, if it moves; then a rejected but well-fitting ICP result, see
+    :func:`_retry_seeds`); the first retry that is not weak replaces it. ``prior`` (default identity)
+    itself is returned, flagged weak, when the pair cannot be aligned.
     """
     start = time.perf_counter()
     prior = np.eye(4) if prior is None else prior
+    gray_t, gray_t1 = to_gray_u8(color_t), to_gray_u8(color_t1)
     if flow is None:
-        gray_t, gray_t1 = to_gray_u8(color_t), to_gray_u8(color_t1)
         flow = dis_flow(gray_t, gray_t1, config.flow_preset)
         backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset)
+    frames = (color_t, depth_t, color_t1, depth_t1, K)
+    first = _align(*frames, flow, backward_flow, prior, config)
+    result = first
+    for seed, guess in _retry_seeds(first, prior, config):
+        forward, backward = seeded_flows(gray_t, gray_t1, depth_t, depth_t1, K, guess, config.flow_preset)
+        retry = _align(*frames, forward, backward, prior, config)
+        if not retry.weak:
+            retry.flow_seed, retry.reason = seed, f"unseeded flow failed: {first.reason}"
+            result = retry
+            break
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def _retry_seeds(first: RelativePose, prior: np.ndarray, config: PoseConfig) -> list[tuple[str, np.ndarray]]:
+    """Motions to seed DIS with after a weak first attempt: a moving prior, then an ICP result that fit
+    well but was rejected for jumping away from the flow estimate (kept only if the flow it seeds agrees)."""
+    if not (first.weak and config.seeded_retry):
+        return []
+    seeds = [] if np.allclose(prior, np.eye(4)) else [(FROM_CONSTANT_VELOCITY, prior)]
+    icp = first.icp_transform
+    if icp is not None and np.all(np.isfinite(icp)) and first.icp_fitness >= config.icp_min_fitness:
+        seeds.append((FROM_ICP, icp))
+    return seeds
+
+
+def seeded_flows(gray_t: np.ndarray, gray_t1: np.ndarray, depth_t: np.ndarray, depth_t1: np.ndarray,
+                 K: np.ndarray, guess: np.ndarray, preset: str) -> tuple[np.ndarray, np.ndarray]:
+    """Forward and backward DIS flows, each seeded by the rigid flow of ``guess`` (camera t -> t+1)."""
+    forward = dis_flow(gray_t, gray_t1, preset, initial=rigid_flow(depth_t, K, guess, fill_holes=True))
+    backward = dis_flow(gray_t1, gray_t, preset, initial=rigid_flow(depth_t1, K, invert(guess), fill_holes=True))
+    return forward, backward
+
+
+def _align(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
+           flow: np.ndarray, backward_flow: np.ndarray | None, prior: np.ndarray, config: PoseConfig) -> RelativePose:
+    """One attempt with the given flows: the two solver phases from identity, then ICP and the guards."""
+    start = time.perf_counter()
     source_mask = reliable_depth_mask(depth_t, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
     samples = sample_pair(color_t, depth_t, color_t1, depth_t1, K, flow, backward_flow, source_mask, config)
     if len(samples.points) < config.min_points:
@@ -184,12 +236,13 @@ def estimate_relative_pose(
                           iterations=(flow_only.iterations, full.iterations))
     if config.use_icp:
         _refine_with_icp(result, depth_t, depth_t1, K, source_mask, config)
+    if config.rgbd_refine and result.estimate == FROM_ICP:
+        _refine_with_rgbd(result, color_t, depth_t, color_t1, depth_t1, K, config)
     final = warp(result.transform, samples)
     if final.valid.sum() > 0:
         result.flow_residual_px = float(np.median(flow_residuals(final, samples).norms()[final.valid]))
     if not result.weak and not result.flow_residual_px <= config.max_flow_residual_px:
         result.weak, result.reason = True, f"median flow residual {result.flow_residual_px:.2f} px"
-    result.seconds = time.perf_counter() - start
     return result
 
 
@@ -225,9 +278,9 @@ def _refine_with_icp(result: RelativePose, depth_t: np.ndarray, depth_t1: np.nda
         depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), result.transform,
         voxel_sizes=tuple(s * config.icp_voxel_m for s in config.icp_scales), iterations=tuple(config.icp_iterations),
         distance_factor=config.icp_distance_factor, normal_radius_factor=config.icp_normal_radius_factor,
-        normal_max_nn=config.icp_normal_max_nn,
+        normal_max_nn=config.icp_normal_max_nn, max_points=config.icp_max_points,
     )
-    result.icp_fitness, result.icp_inlier_rmse_m = icp.fitness, icp.inlier_rmse
+    result.icp_fitness, result.icp_inlier_rmse_m, result.icp_transform = icp.fitness, icp.inlier_rmse, icp.transform
     jump = se3_log(icp.transform @ invert(result.transform))
     jump_m, jump_deg = float(np.linalg.norm(jump[:3])), float(np.degrees(np.linalg.norm(jump[3:])))
     if not np.all(np.isfinite(icp.transform)) or icp.fitness < config.icp_min_fitness:
@@ -237,6 +290,18 @@ def _refine_with_icp(result: RelativePose, depth_t: np.ndarray, depth_t1: np.nda
         result.reason = f"ICP moved {jump_m:.3f} m / {jump_deg:.2f} deg from the flow estimate; kept the flow estimate"
     else:
         result.transform, result.estimate = icp.transform, FROM_ICP
+
+
+def _refine_with_rgbd(result: RelativePose, color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray,
+                      depth_t1: np.ndarray, K: np.ndarray, config: PoseConfig) -> None:
+    """Replace the ICP estimate by dense RGB-D odometry started from it, unless that fails or jumps away."""
+    refined = rgbd_odometry(color_t, depth_t, color_t1, depth_t1, K, result.transform, tuple(config.rgbd_iterations),
+                            config.rgbd_depth_diff_max_m, (config.min_depth_m, config.max_depth_m))
+    if refined is None or not np.all(np.isfinite(refined)):
+        return
+    jump = se3_log(refined @ invert(result.transform))
+    if np.linalg.norm(jump[:3]) <= config.icp_max_jump_m and np.degrees(np.linalg.norm(jump[3:])) <= config.icp_max_jump_deg:
+        result.transform, result.estimate = refined, FROM_RGBD
 
 
 def _fallback(prior: np.ndarray, reason: str, start: float) -> RelativePose:
