@@ -71,7 +71,7 @@ def stage_presets(stage: str) -> dict[str, Any]:
     if stage == "pose":
         from .stages.pose import PoseConfig
 
-        return {"fast": PoseConfig(), "paper": PoseConfig()}
+        return {"fast": PoseConfig(), "paper": PoseConfig(icp_max_points=0)}  # paper: ICP on every point
     if stage == "refine":
         from .stages.refine import PRESETS
 
