@@ -67,12 +67,17 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
 
 
 def _versions() -> dict[str, str]:
-    import cv2
-    import open3d
-    import taichi
+    """Versions of the packages that shaped the result (read without importing them: importing
+    taichi prints a banner on stdout)."""
+    from importlib.metadata import PackageNotFoundError, version
 
-    return {"taichi-gs": __version__, "python": platform.python_version(), "numpy": np.__version__,
-            "taichi": ".".join(map(str, taichi.__version__)), "open3d": open3d.__version__, "opencv": cv2.__version__}
+    found = {"taichi-gs": __version__, "python": platform.python_version()}
+    for name in ("taichi", "numpy", "open3d", "opencv-python-headless", "scikit-image"):
+        try:
+            found[name] = version(name)
+        except PackageNotFoundError:
+            found[name] = "not installed"
+    return found
 
 
 def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
