@@ -1,5 +1,6 @@
-"""Stage 2's trainable scene: fixed-scale isotropic Gaussians whose positions and opacities learn
-from depth, kept on the device between iterations (NumPy in and out only at the edges)."""
+"""Stage 2's trainable scene: Gaussians of one initial scale whose positions and opacities (and,
+for the ablation, scales and rotations) learn from depth, kept on the device between iterations
+(NumPy in and out only at the edges)."""
 
 from __future__ import annotations
 
@@ -11,34 +12,66 @@ from .kernels.optim import Adam
 from .kernels.splat import Camera, DeviceGaussians, Rasterizer, to_device
 from .splats import logit
 
-TRAINED = ("means", "opacity_logits")
+FIXED_SCALE = ("means", "opacity_logits")
+FREE_SCALE = FIXED_SCALE + ("log_scales", "quats")
+
+
+def depth_losses(depth: np.ndarray, transmittance: np.ndarray, target: np.ndarray, min_alpha: float,
+                 weight: float, coverage_weight: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """Alpha-normalised depth L1 and coverage loss of one render against its input depth.
+
+    depth: mean ``|D / alpha - target|`` over pixels with target > 0 and alpha >= ``min_alpha``;
+    coverage: mean ``1 - alpha`` over pixels with target > 0 (holes in the surface). Returns both
+    and the gradients of ``weight * depth + coverage_weight * coverage`` with respect to the
+    blended depth D and to alpha (= 1 - transmittance)."""
+    alpha = 1.0 - transmittance
+    valid = target > 0
+    mask = valid & (alpha >= min_alpha)
+    count, n_valid = max(int(mask.sum()), 1), max(int(valid.sum()), 1)
+    safe = np.where(mask, alpha, 1.0)
+    residual = np.where(mask, depth / safe - target, 0.0)
+    g = weight * np.sign(residual) / count
+    d_alpha = -g * depth / safe**2 - coverage_weight * valid / n_valid
+    coverage = float((1.0 - alpha)[valid].sum() / n_valid)
+    return float(np.abs(residual).sum() / count), coverage, g / safe, d_alpha
 
 
 class DepthRefiner:
-    """Isotropic Gaussians of one fixed scale; one :meth:`step` renders depth at a camera, takes
-    the masked depth L1 and opacity-binarisation losses, back-propagates to positions, opacities
-    and the camera pose, and applies Adam to positions and opacities.
+    """Gaussians initialised isotropic with one scale. One :meth:`step` renders depth at one or
+    more cameras, takes the alpha-normalised masked depth L1 and coverage losses (averaged over the
+    cameras) and the opacity-binarisation loss, back-propagates to the Gaussians and the camera poses, and applies
+    Adam to the Gaussians. ``free_scale`` also trains anisotropic scales and rotations (ablation).
 
     ``K`` is in the data's OpenCV convention; the rasterizer's half-pixel shift is applied here.
     """
 
-    def __init__(self, means: np.ndarray, opacity_logits: np.ndarray, scale: float, K: np.ndarray, width: int, height: int):
+    def __init__(self, means: np.ndarray, opacity_logits: np.ndarray, scale: float, K: np.ndarray, width: int,
+                 height: int, free_scale: bool = False, min_alpha: float = 0.5):
         n = len(means)
+        self.free_scale = free_scale
+        self.trained = FREE_SCALE if free_scale else FIXED_SCALE
         self.log_scale = float(np.log(scale))
+        self.min_alpha = min_alpha
         self.K = raster_intrinsics(K)
         self.width, self.height = width, height
         self.rasterizer = Rasterizer()
         self.kept = np.arange(n)
-        self._build(np.asarray(means, np.float32), np.asarray(opacity_logits, np.float32), moments=None, t=0)
-        self.target = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
+        params = {"means": np.asarray(means, np.float32), "opacity_logits": np.asarray(opacity_logits, np.float32)}
+        if free_scale:
+            params["log_scales"] = np.full((n, 3), self.log_scale, np.float32)
+            params["quats"] = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
+        self._build(params, moments=None, t=0)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
+        self.grad_alpha = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
 
-    def _build(self, means: np.ndarray, logits: np.ndarray, moments: dict | None, t: int) -> None:
-        n = len(means)
+    def _build(self, params: dict[str, np.ndarray], moments: dict | None, t: int) -> None:
+        n = len(params["means"])
+        fixed_scales = np.full(n, self.log_scale, np.float32)
         self.gaussians = DeviceGaussians.from_numpy(
-            means, None, np.full(n, self.log_scale, np.float32), logits, np.zeros((n, 1, 3), np.float32), isotropic=True,
+            params["means"], params.get("quats"), params.get("log_scales", fixed_scales), params["opacity_logits"],
+            np.zeros((n, 1, 3), np.float32), isotropic=not self.free_scale,
         )
-        self.adam = Adam(self.gaussians.params, self.gaussians.grads, {name: 0.0 for name in TRAINED})
+        self.adam = Adam(self.gaussians.params, self.gaussians.grads, {name: 0.0 for name in self.trained})
         self.adam.t = t
         if moments:
             for name, (m, v) in moments.items():
@@ -49,36 +82,64 @@ class DepthRefiner:
     def count(self) -> int:
         return self.gaussians.n
 
-    def step(self, target_depth: np.ndarray, cam_to_world: np.ndarray, lambda_depth: float, lambda_opacity: float,
-             lr_means: float, lr_opacity: float) -> tuple[dict[str, float], np.ndarray]:
-        """One iteration at one camera; returns the loss values and dL/d(pose) (6,)."""
-        n = self.gaussians.n
+    def _depth_backward(self, target_depth: np.ndarray, cam_to_world: np.ndarray, weight: float,
+                        coverage_weight: float) -> tuple[float, float, np.ndarray]:
+        """Render one camera, add its weighted loss gradients to the Gaussians; (depth, coverage, dL/dpose)."""
         view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height))
+        depth, coverage, d_depth, d_alpha = depth_losses(
+            view.depth.to_numpy(), view.transmittance.to_numpy(), target_depth, self.min_alpha, weight,
+            coverage_weight)
+        self.grad_depth.from_numpy(d_depth.astype(np.float32))
+        self.grad_alpha.from_numpy(d_alpha.astype(np.float32))
+        pose_grad = self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha)
+        return depth, coverage, pose_grad
+
+    def step(self, target_depths: list[np.ndarray], cam_to_worlds: list[np.ndarray], lambda_depth: float,
+             lambda_coverage: float, lambda_opacity: float, lrs: dict[str, float]) -> tuple[dict[str, float], list[np.ndarray]]:
+        """One iteration over one or more cameras; returns the loss values and dL/d(pose) (6,) per camera.
+
+        ``lrs`` maps each trained parameter name to its learning rate (missing names: 0)."""
+        n = self.gaussians.n
         self.gaussians.zero_grad()
-        self.grad_depth.fill(0.0)
-        self.target.from_numpy(np.ascontiguousarray(target_depth, dtype=np.float32))
-        depth_l1 = losses.masked_depth_l1(view.depth, self.target, self.grad_depth, weight=lambda_depth)
+        views = len(cam_to_worlds)
+        results = [self._depth_backward(d, T, lambda_depth / views, lambda_coverage / views)
+                   for d, T in zip(target_depths, cam_to_worlds)]
         # The method sums both losses; the depth term here is a mean over pixels, so the opacity
         # weight is divided by the pixel count to keep the method's balance between the two sums.
         opacity = losses.opacity_binarization(
             self.gaussians.params["opacity_logits"], self.gaussians.grads["opacity_logits"], n,
             weight=lambda_opacity / (self.width * self.height),
         )
-        pose_grad = self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth)
-        self.adam.lrs.update(means=lr_means, opacity_logits=lr_opacity)
+        self.adam.lrs.update({name: lrs.get(name, 0.0) for name in self.trained})
         self.adam.step(n)
-        return {"depth": depth_l1, "opacity": opacity / max(n, 1)}, pose_grad
+        depth, coverage = (float(np.mean([r[k] for r in results])) for k in (0, 1))
+        return {"depth": depth, "coverage": coverage, "opacity": opacity / max(n, 1)}, [r[2] for r in results]
 
-    def render_depth(self, cam_to_world: np.ndarray) -> np.ndarray:
-        """Depth (H, W) rendered at a camera, as NumPy."""
+    def depth_error(self, target_depth: np.ndarray, cam_to_world: np.ndarray) -> float:
+        """The alpha-normalised masked depth L1 (m) at a camera, without training."""
         view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height))
-        return view.depth.to_numpy().astype(np.float32)
+        return depth_losses(view.depth.to_numpy(), view.transmittance.to_numpy(), target_depth,
+                            self.min_alpha, 1.0, 0.0)[0]
+
+    def params(self) -> dict[str, np.ndarray]:
+        """The trained parameters of the live Gaussians as NumPy."""
+        return {name: self.gaussians.params[name].to_numpy()[: self.count] for name in self.trained}
 
     def means(self) -> np.ndarray:
         return self.gaussians.params["means"].to_numpy()[: self.count]
 
     def opacity_logits(self) -> np.ndarray:
         return self.gaussians.params["opacity_logits"].to_numpy()[: self.count]
+
+    def log_scales(self) -> np.ndarray:
+        """(N, 3) log scales (all equal to the initial one unless ``free_scale``)."""
+        if self.free_scale:
+            return self.gaussians.params["log_scales"].to_numpy()[: self.count]
+        return np.full((self.count, 3), self.log_scale, np.float32)
+
+    def quats(self) -> np.ndarray | None:
+        """(N, 4) rotations when ``free_scale``, else None (isotropic)."""
+        return self.gaussians.params["quats"].to_numpy()[: self.count] if self.free_scale else None
 
     def kept_indices(self) -> np.ndarray:
         """Indices, into the initial Gaussians, of those still alive."""
@@ -94,7 +155,7 @@ class DepthRefiner:
             return 0
         moments = {name: (m[keep], v[keep]) for name, (m, v) in self._moments().items()}
         self.kept = self.kept[keep]
-        self._build(self.means()[keep], self.opacity_logits()[keep], moments, self.adam.t)
+        self._build({name: value[keep] for name, value in self.params().items()}, moments, self.adam.t)
         return int((~keep).sum())
 
     def reset_opacity(self, opacity: float) -> None:
@@ -105,12 +166,12 @@ class DepthRefiner:
 
     def state(self) -> dict[str, np.ndarray]:
         """Everything needed to resume: parameters, kept indices, Adam moments and step."""
-        out = {"means": self.means(), "opacity_logits": self.opacity_logits(), "kept": self.kept, "adam_t": np.array(self.adam.t)}
+        out = {**self.params(), "kept": self.kept, "adam_t": np.array(self.adam.t)}
         for name, (m, v) in self._moments().items():
             out[f"m_{name}"], out[f"v_{name}"] = m, v
         return out
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         self.kept = np.asarray(state["kept"])
-        moments = {name: (state[f"m_{name}"], state[f"v_{name}"]) for name in TRAINED}
-        self._build(state["means"], state["opacity_logits"], moments, int(state["adam_t"]))
+        moments = {name: (state[f"m_{name}"], state[f"v_{name}"]) for name in self.trained}
+        self._build({name: state[name] for name in self.trained}, moments, int(state["adam_t"]))

@@ -5,22 +5,34 @@ and camera poses are trained, against each frame's input depth, with a masked de
 opacity binarisation loss o^2 (1 - o)^2. The first camera is held fixed to pin the gauge. Gaussians
 with opacity under 0.8 are pruned every 100 N iterations and opacities reset to 0.5 every 200 N,
 600 N iterations in all (N frames); the `fast` preset scales this schedule down for CPU runs.
+
+Our choices, each measured against ground truth (bench/refine.py, tests/test_refine.py):
+- the depth compared is the alpha-normalised blend D / alpha on pixels with alpha >= 0.5, plus a
+  coverage term mean(1 - alpha) where the input has depth: the raw blend D is short wherever alpha
+  < 1, which biased every pose gradient; normalising alone left holes (opacity 0.5 is a fixed
+  point of the binarisation loss) that pruning then opened;
+- input depth next to depth steps is ignored: a splat render smears edges over its footprint;
+- each pose takes Adam steps on a camera-frame twist (translation along the camera axes, rotation
+  about its centre) with per-component rates in metres and radians, exponentially decayed, and
+  stays fixed for a short warm-up while opacities settle.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..config import tomllib
 from ..errors import InputError
-from ..geometry import se3_exp
+from ..geometry import se3_exp, skew
 from ..io.atomic import atomic_path, write_text
 from ..io.ply import read_point_cloud, write_point_cloud, write_splats
 from ..io.sequence import Sequence
@@ -41,22 +53,32 @@ class RefineConfig:
     reset_every_per_frame: int = 200
     prune_opacity: float = 0.8
     lambda_depth: float = 1.0
+    lambda_coverage: float = 0.3  # mean (1 - alpha) where the input has depth: keeps the surface closed
     lambda_opacity: float = 0.1
-    lr_means: float = 1.6e-4  # times the scene extent, decayed to lr_means_final
-    lr_means_final: float = 1.6e-6
+    min_alpha: float = 0.5  # depth loss on D / alpha where the render's alpha reaches this
+    views_per_step: int = 1  # training cameras rendered per iteration (gradients averaged)
+    lr_means: float = 5e-4  # times the scene extent, decayed to lr_means_final
+    lr_means_final: float = 5e-6
     lr_opacity: float = 0.05
-    lr_pose: float = 1e-3  # decayed exponentially to lr_pose_final
+    free_scale: bool = False  # ablation: also train anisotropic scales and rotations
+    lr_log_scales: float = 0.005
+    lr_quats: float = 0.001
+    lr_pose: float = 1e-2  # translation step (m) of the per-frame Adam; decayed to lr_pose_final
     lr_pose_final: float = 1e-5
+    pose_rotation_per_m: float = 0.5  # rotation lr (rad) per translation lr (m): ~1 / scene depth
+    pose_warmup_fraction: float = 0.1  # poses stay fixed for this first part of the schedule
     resolution_scale: int = 1  # render at 1/scale of the input resolution
     seed: int = 0
     checkpoint_every: int = 500
     max_depth: float = 0.0  # ignore input depth beyond this (0 = keep all)
+    edge_ratio: float = 0.05  # ignore input depth within edge_radius px of a relative step above this (0 = keep)
+    edge_radius: int = 2
 
 
 PRESETS = {
     "paper": RefineConfig(),
     "fast": RefineConfig(iterations_per_frame=60, prune_every_per_frame=20, reset_every_per_frame=40,
-                         resolution_scale=2, checkpoint_every=200),
+                         checkpoint_every=200),
 }
 
 
@@ -66,6 +88,7 @@ class RefineResult:
     loss_history: list[dict[str, float]]
     gaussians: int
     seconds_per_iteration: float
+    peak_memory_mib: float  # the process's peak resident memory so far (ru_maxrss)
 
 
 def _exp_decay(start: float, end: float, fraction: float) -> float:
@@ -77,6 +100,17 @@ def _downsample_depth(depth: np.ndarray, scale: int) -> np.ndarray:
     if scale == 1:
         return depth
     return np.ascontiguousarray(depth[scale // 2::scale, scale // 2::scale])
+
+
+def _without_edges(depth: np.ndarray, ratio: float, radius: int) -> np.ndarray:
+    """Depth with pixels near a depth step (max - min over a (2r+1)^2 window > ratio * depth) set to 0.
+
+    A splat render smears each edge over the Gaussians' footprint, so these pixels bias the pose."""
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    depth = depth.astype(np.float32)
+    high = cv2.dilate(depth, kernel)
+    low = cv2.erode(np.where(depth > 0, depth, np.float32(np.inf)), kernel)
+    return np.where(high - low > ratio * depth, 0.0, depth).astype(np.float32)
 
 
 def _scaled_intrinsics(K: np.ndarray, scale: int) -> np.ndarray:
@@ -129,49 +163,45 @@ def run_refine(
     prune_every = config.prune_every_per_frame * n_frames
     reset_every = config.reset_every_per_frame * n_frames
 
-    scale = config.resolution_scale
-    K = _scaled_intrinsics(sequence.K(), scale)
-    depths = [_downsample_depth(sequence.depth(i), scale) for i in range(n_frames)]
-    if config.max_depth > 0:
-        depths = [np.where(d <= config.max_depth, d, 0.0).astype(np.float32) for d in depths]
+    K, depths = _training_depths(sequence, config)
     height, width = depths[0].shape
 
     splats = splats_from_points(points, colors, scale=config.voxel_size / 2, opacity=config.initial_opacity)
     extent = float(np.linalg.norm(initial_poses[:, :3, 3] - initial_poses[:, :3, 3].mean(axis=0), axis=1).max())
     extent = max(extent * 1.1, 1.0)
-    model = DepthRefiner(splats.means, splats.opacity_logits, scale=config.voxel_size / 2, K=K, width=width, height=height)
+    model = DepthRefiner(splats.means, splats.opacity_logits, scale=config.voxel_size / 2, K=K, width=width,
+                         height=height, free_scale=config.free_scale, min_alpha=config.min_alpha)
     poses = initial_poses.copy()
     pose_adam = np.zeros((n_frames, 2, 6))
     pose_steps = np.zeros(n_frames, dtype=np.int64)
-    rng = np.random.default_rng(config.seed)
     history: list[dict[str, float]] = []
     start_iteration = 0
 
     checkpoint = stage_dir / "checkpoint.npz"
-    if checkpoint.is_file():
-        state = np.load(checkpoint, allow_pickle=False)
-        if json.loads(str(state["config"])) == dataclasses.asdict(config) and len(state["poses"]) == n_frames:
-            start_iteration = int(state["iteration"])
-            poses, pose_adam, pose_steps = state["poses"], state["pose_adam"], state["pose_steps"]
-            model.load_state({k[6:]: state[k] for k in state.files if k.startswith("model_")})
-            rng = np.random.default_rng([config.seed, start_iteration])
-            history = json.loads(str(state["history"]))
+    state = _matching_checkpoint(checkpoint, config, n_frames)
+    if state is not None:
+        start_iteration = int(state["iteration"])
+        poses, pose_adam, pose_steps = state["poses"], state["pose_adam"], state["pose_steps"]
+        model.load_state({k[6:]: state[k] for k in state.files if k.startswith("model_")})
+        history = json.loads(str(state["history"]))
 
+    views = min(config.views_per_step, n_frames)
     t0 = time.perf_counter()
     for it in range(start_iteration, total):
         fraction = it / max(total - 1, 1)
-        frame = int(rng.integers(n_frames))
-        losses, pose_grad = model.step(
-            depths[frame], poses[frame],
-            lambda_depth=config.lambda_depth, lambda_opacity=config.lambda_opacity,
-            lr_means=_exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
-            lr_opacity=config.lr_opacity,
+        frames = np.random.default_rng([config.seed, it]).choice(n_frames, size=views, replace=False)
+        losses, pose_grads = model.step(
+            [depths[f] for f in frames], [poses[f] for f in frames],
+            lambda_depth=config.lambda_depth, lambda_coverage=config.lambda_coverage,
+            lambda_opacity=config.lambda_opacity, lrs=_gaussian_lrs(config, fraction, extent),
         )
-        if not np.all(np.isfinite(pose_grad)) or not np.isfinite(losses["depth"]):
+        if not all(np.all(np.isfinite(g)) for g in pose_grads) or not np.isfinite(losses["depth"]):
             raise FloatingPointError(f"stage 2 (refine) diverged at iteration {it}: non-finite loss or gradient")
-        if frame != 0:
-            lr_pose = _exp_decay(config.lr_pose, config.lr_pose_final, fraction)
-            poses[frame] = _adam_pose_step(poses[frame], pose_grad, pose_adam[frame], pose_steps, frame, lr_pose)
+        if fraction >= config.pose_warmup_fraction:
+            lr = _pose_lrs(config, fraction)
+            for f, grad in zip(frames, pose_grads):
+                if f != 0:
+                    poses[f] = _adam_pose_step(poses[f], grad, pose_adam[f], pose_steps, f, lr)
         if (it + 1) % 10 == 0 or it == total - 1:
             history.append({"iteration": it + 1, **losses, "gaussians": model.count})
         if (it + 1) % prune_every == 0 and it + 1 < total:
@@ -187,19 +217,72 @@ def run_refine(
     _write_outputs(stage_dir, sequence, poses, model, colors, splats, config, history)
     if checkpoint.is_file():
         checkpoint.unlink()
-    return RefineResult(poses, history, model.count, seconds)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return RefineResult(poses, history, model.count, seconds, peak)
 
 
-def _adam_pose_step(pose: np.ndarray, grad: np.ndarray, adam: np.ndarray, steps: np.ndarray, frame: int, lr: float,
-                    beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8) -> np.ndarray:
-    """Adam on the left-multiplied se(3) perturbation; the pose stays on SE(3) (update by exp)."""
+def _training_depths(sequence: Sequence, config: RefineConfig) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Intrinsics and every frame's input depth at the training resolution, with the ignored pixels at 0."""
+    depths = [_downsample_depth(sequence.depth(i), config.resolution_scale) for i in range(len(sequence))]
+    if config.max_depth > 0:
+        depths = [np.where(d <= config.max_depth, d, 0.0).astype(np.float32) for d in depths]
+    if config.edge_ratio > 0:
+        depths = [_without_edges(d, config.edge_ratio, config.edge_radius) for d in depths]
+    return _scaled_intrinsics(sequence.K(), config.resolution_scale), depths
+
+
+def _matching_checkpoint(path: Path, config: RefineConfig, n_frames: int):
+    """The saved state at ``path`` if it was written with this config and frame count, else None."""
+    if not path.is_file():
+        return None
+    state = np.load(path, allow_pickle=False)
+    if json.loads(str(state["config"])) != dataclasses.asdict(config) or len(state["poses"]) != n_frames:
+        return None
+    return state
+
+
+def _gaussian_lrs(config: RefineConfig, fraction: float, extent: float) -> dict[str, float]:
+    """Learning rates of the Gaussian parameters at this point of the schedule."""
+    return {
+        "means": _exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
+        "opacity_logits": config.lr_opacity,
+        "log_scales": config.lr_log_scales,
+        "quats": config.lr_quats,
+    }
+
+
+def _pose_lrs(config: RefineConfig, fraction: float) -> np.ndarray:
+    """Per-component pose learning rates [translation (m) x3, rotation (rad) x3], decayed after the warm-up."""
+    warm = config.pose_warmup_fraction
+    lr = _exp_decay(config.lr_pose, config.lr_pose_final, (fraction - warm) / max(1.0 - warm, 1e-9))
+    return np.array([lr] * 3 + [lr * config.pose_rotation_per_m] * 3)
+
+
+def _adam_pose_step(pose: np.ndarray, grad: np.ndarray, adam: np.ndarray, steps: np.ndarray, frame: int, lr: np.ndarray,
+                    beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-12) -> np.ndarray:
+    """Adam on the camera-frame se(3) perturbation ``pose @ exp(delta)`` (translation along the
+    camera's axes, rotation about its centre); the pose stays on SE(3) (update by exp).
+
+    ``grad`` is the rasterizer's gradient for the world-frame perturbation ``exp(delta) @ pose``;
+    the camera-frame one is ``Ad(pose)^T grad``."""
+    grad = _adjoint(pose).T @ grad
     steps[frame] += 1
     t = steps[frame]
     adam[0] = beta1 * adam[0] + (1 - beta1) * grad
     adam[1] = beta2 * adam[1] + (1 - beta2) * grad**2
     m_hat = adam[0] / (1 - beta1**t)
     v_hat = adam[1] / (1 - beta2**t)
-    return se3_exp(-lr * m_hat / (np.sqrt(v_hat) + eps)) @ pose
+    return pose @ se3_exp(-lr * m_hat / (np.sqrt(v_hat) + eps))
+
+
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of T for twists [translation, rotation]: T exp(e) T^-1 = exp(Ad e)."""
+    R, t = T[:3, :3], T[:3, 3]
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = R
+    ad[:3, 3:] = skew(t) @ R
+    ad[3:, 3:] = R
+    return ad
 
 
 def _save_checkpoint(path: Path, iteration: int, config: RefineConfig, poses: np.ndarray, pose_adam: np.ndarray,
@@ -216,6 +299,9 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, poses: np.ndarray, model
     kept = model.kept_indices()
     final = splats.subset(kept)
     final.means = model.means().astype(np.float32)
+    final.log_scales = model.log_scales().astype(np.float32)
+    if config.free_scale:
+        final.quats = model.quats().astype(np.float32)
     final.opacity_logits = model.opacity_logits().astype(np.float32)
     write_splats(stage_dir / "splats.ply", final)
     write_point_cloud(stage_dir / "points.ply", final.means, colors[kept])
