@@ -91,6 +91,16 @@ def invert(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of T for twists [translation, rotation]: T exp(e) T^-1 = exp(Ad e)."""
+    R, t = T[:3, :3], T[:3, 3]
+    ad = np.zeros((6, 6))
+    ad[:3, :3] = R
+    ad[:3, 3:] = skew(t) @ R
+    ad[3:, 3:] = R
+    return ad
+
+
 def interpolate(T_a: np.ndarray, T_b: np.ndarray, tau: float) -> np.ndarray:
     """Geodesic SE(3) interpolation: ``T_a`` at tau=0, ``T_b`` at tau=1."""
     return T_a @ se3_exp(tau * se3_log(invert(T_a) @ T_b))

@@ -57,7 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import raster_intrinsics, se3_exp, se3_log, skew
+from .geometry import adjoint, raster_intrinsics, se3_exp, se3_log
 from .kernels import blur, losses, runtime
 from .kernels.optim import Adam
 from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, to_device
@@ -158,16 +158,6 @@ def virtual_pose(base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, tau: 
     return base @ se3_exp((1.0 - tau) * np.asarray(d_start) + tau * np.asarray(d_end))
 
 
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of T for twists [translation, rotation]: T exp(e) T^-1 = exp(Ad e)."""
-    R, t = T[:3, :3], T[:3, 3]
-    ad = np.zeros((6, 6))
-    ad[:3, :3] = R
-    ad[:3, 3:] = skew(t) @ R
-    ad[3:, 3:] = R
-    return ad
-
-
 def exposure_pose_gradients(
     base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus, pose_grads
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -184,7 +174,7 @@ def exposure_pose_gradients(
         j_right = np.stack([
             (se3_log(inv @ se3_exp(xi + h * e)) - se3_log(inv @ se3_exp(xi - h * e))) / (2 * h) for e in np.eye(6)
         ], axis=1)
-        g_xi = j_right.T @ (_adjoint(virtual_pose(base, d_start, d_end, tau)).T @ np.asarray(g, dtype=np.float64))
+        g_xi = j_right.T @ (adjoint(virtual_pose(base, d_start, d_end, tau)).T @ np.asarray(g, dtype=np.float64))
         g_start += (1.0 - tau) * g_xi
         g_end += tau * g_xi
     return g_start, g_end

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,7 +31,7 @@ import numpy as np
 
 from ..config import tomllib
 from ..errors import InputError
-from ..geometry import se3_exp, skew
+from ..geometry import adjoint, se3_exp
 from ..io.atomic import atomic_path, write_text
 from ..io.ply import read_point_cloud, write_point_cloud, write_splats
 from ..io.sequence import Sequence
@@ -40,6 +39,7 @@ from ..io.trajectory import read_tum, write_tum
 from ..plots import line_plot
 from ..refine_model import DepthRefiner
 from ..splats import splats_from_points
+from .schedule import downsample_depth, exp_decay, scaled_intrinsics
 
 
 @dataclass(frozen=True)
@@ -88,18 +88,6 @@ class RefineResult:
     loss_history: list[dict[str, float]]
     gaussians: int
     seconds_per_iteration: float
-    peak_memory_mib: float  # the process's peak resident memory so far (ru_maxrss)
-
-
-def _exp_decay(start: float, end: float, fraction: float) -> float:
-    return float(np.exp(np.log(start) * (1.0 - fraction) + np.log(end) * fraction))
-
-
-def _downsample_depth(depth: np.ndarray, scale: int) -> np.ndarray:
-    """Nearest-neighbour subsampling at pixel centres (keeps depth sharp, no mixing at edges)."""
-    if scale == 1:
-        return depth
-    return np.ascontiguousarray(depth[scale // 2::scale, scale // 2::scale])
 
 
 def _without_edges(depth: np.ndarray, ratio: float, radius: int) -> np.ndarray:
@@ -111,16 +99,6 @@ def _without_edges(depth: np.ndarray, ratio: float, radius: int) -> np.ndarray:
     high = cv2.dilate(depth, kernel)
     low = cv2.erode(np.where(depth > 0, depth, np.float32(np.inf)), kernel)
     return np.where(high - low > ratio * depth, 0.0, depth).astype(np.float32)
-
-
-def _scaled_intrinsics(K: np.ndarray, scale: int) -> np.ndarray:
-    """Intrinsics of the image subsampled at pixels scale*i + scale//2 (OpenCV convention)."""
-    K = K.copy()
-    K[0, 0] /= scale
-    K[1, 1] /= scale
-    K[0, 2] = (K[0, 2] - scale // 2) / scale
-    K[1, 2] = (K[1, 2] - scale // 2) / scale
-    return K
 
 
 def load_stage1(out_dir: Path, poses_path: Path | None = None, points_path: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
@@ -217,18 +195,17 @@ def run_refine(
     _write_outputs(stage_dir, sequence, poses, model, colors, splats, config, history)
     if checkpoint.is_file():
         checkpoint.unlink()
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return RefineResult(poses, history, model.count, seconds, peak)
+    return RefineResult(poses, history, model.count, seconds)
 
 
 def _training_depths(sequence: Sequence, config: RefineConfig) -> tuple[np.ndarray, list[np.ndarray]]:
     """Intrinsics and every frame's input depth at the training resolution, with the ignored pixels at 0."""
-    depths = [_downsample_depth(sequence.depth(i), config.resolution_scale) for i in range(len(sequence))]
+    depths = [downsample_depth(sequence.depth(i), config.resolution_scale) for i in range(len(sequence))]
     if config.max_depth > 0:
         depths = [np.where(d <= config.max_depth, d, 0.0).astype(np.float32) for d in depths]
     if config.edge_ratio > 0:
         depths = [_without_edges(d, config.edge_ratio, config.edge_radius) for d in depths]
-    return _scaled_intrinsics(sequence.K(), config.resolution_scale), depths
+    return scaled_intrinsics(sequence.K(), config.resolution_scale), depths
 
 
 def _matching_checkpoint(path: Path, config: RefineConfig, n_frames: int):
@@ -244,7 +221,7 @@ def _matching_checkpoint(path: Path, config: RefineConfig, n_frames: int):
 def _gaussian_lrs(config: RefineConfig, fraction: float, extent: float) -> dict[str, float]:
     """Learning rates of the Gaussian parameters at this point of the schedule."""
     return {
-        "means": _exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
+        "means": exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
         "opacity_logits": config.lr_opacity,
         "log_scales": config.lr_log_scales,
         "quats": config.lr_quats,
@@ -254,7 +231,7 @@ def _gaussian_lrs(config: RefineConfig, fraction: float, extent: float) -> dict[
 def _pose_lrs(config: RefineConfig, fraction: float) -> np.ndarray:
     """Per-component pose learning rates [translation (m) x3, rotation (rad) x3], decayed after the warm-up."""
     warm = config.pose_warmup_fraction
-    lr = _exp_decay(config.lr_pose, config.lr_pose_final, (fraction - warm) / max(1.0 - warm, 1e-9))
+    lr = exp_decay(config.lr_pose, config.lr_pose_final, (fraction - warm) / max(1.0 - warm, 1e-9))
     return np.array([lr] * 3 + [lr * config.pose_rotation_per_m] * 3)
 
 
@@ -265,7 +242,7 @@ def _adam_pose_step(pose: np.ndarray, grad: np.ndarray, adam: np.ndarray, steps:
 
     ``grad`` is the rasterizer's gradient for the world-frame perturbation ``exp(delta) @ pose``;
     the camera-frame one is ``Ad(pose)^T grad``."""
-    grad = _adjoint(pose).T @ grad
+    grad = adjoint(pose).T @ grad
     steps[frame] += 1
     t = steps[frame]
     adam[0] = beta1 * adam[0] + (1 - beta1) * grad
@@ -273,16 +250,6 @@ def _adam_pose_step(pose: np.ndarray, grad: np.ndarray, adam: np.ndarray, steps:
     m_hat = adam[0] / (1 - beta1**t)
     v_hat = adam[1] / (1 - beta2**t)
     return pose @ se3_exp(-lr * m_hat / (np.sqrt(v_hat) + eps))
-
-
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of T for twists [translation, rotation]: T exp(e) T^-1 = exp(Ad e)."""
-    R, t = T[:3, :3], T[:3, 3]
-    ad = np.zeros((6, 6))
-    ad[:3, :3] = R
-    ad[:3, 3:] = skew(t) @ R
-    ad[3:, 3:] = R
-    return ad
 
 
 def _save_checkpoint(path: Path, iteration: int, config: RefineConfig, poses: np.ndarray, pose_adam: np.ndarray,
