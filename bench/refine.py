@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from taichi_gs.evaluate import ate, rpe
-from taichi_gs.geometry import invert, se3_exp
+from taichi_gs.geometry import invert
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.kernels import runtime
 from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
@@ -38,18 +38,10 @@ from taichi_gs.synth import SynthConfig, generate
 sys.path.insert(0, str(Path(__file__).parent))
 from pose import first_frames  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from synthetic_refine import perturbed  # noqa: E402
+
 VOXEL = 0.02
-
-
-def perturbed(gt: np.ndarray, seed: int = 1) -> np.ndarray:
-    """GT with a drift growing to 3 cm / 2 deg and per-frame jitter of 1 cm / 0.5 deg (first pose exact)."""
-    rng = np.random.default_rng(seed)
-    drift = np.concatenate([rng.normal(size=3), rng.normal(size=3)])
-    drift[:3] *= 0.03 / np.linalg.norm(drift[:3])
-    drift[3:] *= np.radians(2.0) / np.linalg.norm(drift[3:])
-    jitter = np.concatenate([rng.normal(size=(len(gt), 3)) * 0.01, rng.normal(size=(len(gt), 3)) * np.radians(0.5)], axis=1)
-    jitter[0] = 0.0
-    return np.stack([se3_exp(drift * i / (len(gt) - 1)) @ T @ se3_exp(jitter[i]) for i, T in enumerate(gt)])
 
 
 def synthetic(kind: str, size: tuple[int, int], frames: int, turn_frames: int, root: Path):

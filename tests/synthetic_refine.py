@@ -1,5 +1,6 @@
-"""Stand-in stage-2 outputs for stage-3 tests and benchmarks: OUT/refine/ built from a synthetic
-sequence's ground-truth mid-exposure poses and its sensor depth (so stage 3 is measured alone)."""
+"""Stand-ins for earlier stages in tests and benchmarks: perturbed ground-truth poses (stage 2's
+input) and OUT/refine/ built from a synthetic sequence's ground-truth mid-exposure poses and its
+sensor depth (so stage 3 is measured alone)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from taichi_gs.geometry import backproject, transform
+from taichi_gs.geometry import backproject, se3_exp, transform
 from taichi_gs.io.ply import write_splats
 from taichi_gs.io.sequence import Sequence
 from taichi_gs.io.trajectory import write_tum
@@ -37,3 +38,15 @@ def write_refine_outputs(sequence: Sequence, out: Path, voxel: float = 0.03, opa
     write_splats(out / "refine" / "splats.ply", splats_from_points(points, np.clip(colors, 0, 1), voxel / 2, opacity))
     write_tum(out / "refine" / "trajectory.txt", sequence.timestamps, poses, header="ground-truth stand-in for stage 2")
     (out / "run.json").write_text(json.dumps({"sequence": str(Path(sequence.root).resolve())}))
+
+
+def perturbed(gt: np.ndarray, seed: int = 1) -> np.ndarray:
+    """GT with a drift growing to 3 cm / 2 degrees at the last frame and per-frame jitter of
+    1 cm / 0.5 degrees (rms per axis); the first pose is left exact."""
+    rng = np.random.default_rng(seed)
+    drift = np.concatenate([rng.normal(size=3), rng.normal(size=3)])
+    drift[:3] *= 0.03 / np.linalg.norm(drift[:3])
+    drift[3:] *= np.radians(2.0) / np.linalg.norm(drift[3:])
+    jitter = np.concatenate([rng.normal(size=(len(gt), 3)) * 0.01, rng.normal(size=(len(gt), 3)) * np.radians(0.5)], axis=1)
+    jitter[0] = 0.0
+    return np.stack([se3_exp(drift * i / (len(gt) - 1)) @ T @ se3_exp(jitter[i]) for i, T in enumerate(gt)])

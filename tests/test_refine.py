@@ -7,9 +7,11 @@ import dataclasses
 import numpy as np
 import pytest
 
+from synthetic_refine import perturbed
+
 from taichi_gs.errors import InputError
 from taichi_gs.evaluate import ate, rpe
-from taichi_gs.geometry import invert, se3_exp
+from taichi_gs.geometry import invert
 from taichi_gs.io.ply import read_point_cloud, read_splats
 from taichi_gs.io.trajectory import read_tum
 from taichi_gs.stages.pose import PoseConfig, fuse_points
@@ -19,18 +21,6 @@ synth = pytest.importorskip("taichi_gs.synth")
 
 CONFIG = dataclasses.replace(PRESETS["fast"], voxel_size=0.02, iterations_per_frame=100, prune_every_per_frame=30,
                              reset_every_per_frame=60)
-
-
-def perturbed(gt: np.ndarray, seed: int = 1) -> np.ndarray:
-    """GT with a drift growing to 3 cm / 2 degrees at the last frame and per-frame jitter of
-    1 cm / 0.5 degrees (rms per axis); the first pose is left exact."""
-    rng = np.random.default_rng(seed)
-    drift = np.concatenate([rng.normal(size=3), rng.normal(size=3)])
-    drift[:3] *= 0.03 / np.linalg.norm(drift[:3])
-    drift[3:] *= np.radians(2.0) / np.linalg.norm(drift[3:])
-    jitter = np.concatenate([rng.normal(size=(len(gt), 3)) * 0.01, rng.normal(size=(len(gt), 3)) * np.radians(0.5)], axis=1)
-    jitter[0] = 0.0
-    return np.stack([se3_exp(drift * i / (len(gt) - 1)) @ T @ se3_exp(jitter[i]) for i, T in enumerate(gt)])
 
 
 @pytest.fixture(scope="module")
