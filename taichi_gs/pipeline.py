@@ -175,7 +175,7 @@ def run_stage(stage: str, sequence: Sequence, out: Path, section: Any, progress:
         write_config(out / "deblur" / "config.toml", {"deblur": section})
         with progress(STAGE_TITLES[stage], 1) as update:
             result = run_deblur(sequence, out, section, progress=update)
-        summary = result.summary() if hasattr(result, "summary") else "done"
+        summary = result.summary()
     else:
         raise ValueError(f"unknown stage {stage!r}")
     _mark_done(out, stage, section, time.perf_counter() - start, _arch(), summary)

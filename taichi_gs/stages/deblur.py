@@ -17,7 +17,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ..deblur_model import BlurScene, Rates
@@ -27,7 +26,8 @@ from ..io.atomic import atomic_path, write_text
 from ..io.ply import read_splats, write_splats
 from ..io.sequence import Sequence
 from ..io.trajectory import format_tum, read_tum, write_tum
-from ..plots import line_plot
+from ..io.images import encode_depth, to_uint8, write_png
+from ..plots import image_grid, line_plot
 from ..render import virtual_pose
 from ..splats import Splats
 from .schedule import downsample_depth, exp_decay, scaled_intrinsics
@@ -362,15 +362,6 @@ def _load_checkpoint(path: Path, config: DeblurConfig, model: BlurScene, exposur
     return int(state["iteration"]), state["offsets"].copy(), rng, json.loads(str(state["history"]))
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
-    """RGB float image in [0, 1] (8-bit) or a uint16 image, written atomically."""
-    if image.dtype != np.uint16:
-        image = cv2.cvtColor(np.round(np.clip(image, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), image):
-            raise OSError(f"could not write {path}")
-
-
 def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
                    result: DeblurResult, config: DeblurConfig) -> None:
     write_splats(stage_dir / "splats.ply", splats)
@@ -403,19 +394,20 @@ def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     first = sequence.color(0)
     full = BlurScene(splats, sequence.K(), first.shape[1], first.shape[0])
     scale = sequence.intrinsics.depth_scale
-    rows = []
+    rows, names = [], []
+    has_truth = sequence.sharp_paths is not None
     grid_frames = set(_grid_frames(len(sequence), config))
     for i, name in enumerate(sequence.names):
         sharp, depth = full.render(virtual_pose(poses[i], *offsets[i], 0.5))
         reblurred = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], config.k)
-        _write_png(stage_dir / "renders" / "sharp" / f"{name}.png", sharp)
-        _write_png(stage_dir / "renders" / "reblurred" / f"{name}.png", reblurred)
-        _write_png(stage_dir / "renders" / "depth" / f"{name}.png",
-                   np.clip(np.round(depth * scale), 0, 65535).astype(np.uint16))
+        write_png(stage_dir / "renders" / "sharp" / f"{name}.png", to_uint8(sharp))
+        write_png(stage_dir / "renders" / "reblurred" / f"{name}.png", to_uint8(reblurred))
+        write_png(stage_dir / "renders" / "depth" / f"{name}.png", encode_depth(depth, scale))
         if i in grid_frames:
-            row = [sequence.color(i), sharp] + ([sequence.sharp(i)] if sequence.sharp_paths is not None else [])
-            rows.append(np.concatenate(row, axis=1))
-    _write_png(stage_dir / "grid.png", np.concatenate(rows, axis=0))
+            rows.append([sequence.color(i), sharp] + ([sequence.sharp(i)] if has_truth else []))
+            names.append(name)
+    titles = ["blurred input", "deblurred (ours)"] + (["sharp ground truth"] if has_truth else [])
+    image_grid(stage_dir / "grid.png", rows, titles, names, min_width=0)
 
 
 def _grid_frames(n_frames: int, config: DeblurConfig) -> list[int]:
