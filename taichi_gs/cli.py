@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import functools
 import json
+import os
 import platform
 import sys
 from collections.abc import Callable, Iterator
@@ -19,7 +21,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from . import __version__
-from .errors import BackendError, InputError
+from .errors import BackendError, DivergenceError, InputError
 
 app = typer.Typer(
     help="Splat-based 3D reconstruction from RGB-D sequences with extreme motion blur.",
@@ -31,6 +33,8 @@ console = Console(stderr=True)
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 4
 EXIT_INTERRUPTED = 130
+MAX_SYNTH_FRAMES = 10_000
+MAX_SYNTH_SIZE = 4096
 
 
 class Arch(str, Enum):
@@ -61,12 +65,28 @@ def handles_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             return command(*args, **kwargs)
         except (InputError, BackendError) as err:
             _fail(str(err), EXIT_BAD_INPUT)
-        except FloatingPointError as err:
-            _fail(f"{err}; nothing was written for this stage. Lower its learning rates in --config", EXIT_DIVERGED)
+        except DivergenceError as err:
+            _fail(f"{err}; the stage is not marked done and its last checkpoint is kept. Lower its learning "
+                  "rates in --config", EXIT_DIVERGED)
+        except OSError as err:
+            _fail(_os_error_message(err), EXIT_BAD_INPUT)
         except KeyboardInterrupt:
             _fail("interrupted; finished work is kept: rerun the same command to resume", EXIT_INTERRUPTED)
 
     return wrapper
+
+
+def _os_error_message(err: OSError) -> str:
+    """One line for a file-system failure: the path, what happened, what to do."""
+    where = f"{err.filename}: " if err.filename else ""
+    fixes = {errno.ENOSPC: "free disk space and rerun the same command (finished work is kept)",
+             errno.EROFS: "choose an --out on a writable file system",
+             errno.EACCES: "choose an --out you may write to, or fix the permissions",
+             errno.EPERM: "choose an --out you may write to, or fix the permissions",
+             errno.ENOTDIR: "a path component is a file, not a folder: choose another path",
+             errno.EEXIST: "the path exists and is not a folder: choose another path"}
+    fix = fixes.get(err.errno, "check the path, free space and permissions")
+    return f"{where}{err.strerror or err}; {fix}"
 
 
 @contextmanager
@@ -131,17 +151,21 @@ def info() -> None:
 @app.command()
 @handles_errors
 def synth(
-    out: Annotated[Path, typer.Argument(help="Folder to write the sequence into.")],
-    frames: int = 60,
-    width: int = 320,
-    height: int = 240,
+    out: Annotated[Path, typer.Argument(help="Folder to write the sequence into (new or empty; see --overwrite).")],
+    frames: Annotated[int, typer.Option(min=2, max=MAX_SYNTH_FRAMES, help="Number of frames.")] = 60,
+    width: Annotated[int, typer.Option(min=16, max=MAX_SYNTH_SIZE, help="Image width (px).")] = 320,
+    height: Annotated[int, typer.Option(min=16, max=MAX_SYNTH_SIZE, help="Image height (px).")] = 240,
     trajectory: Annotated[str, typer.Option(help="translation | turn | handheld")] = "handheld",
     blur: Annotated[str, typer.Option(help="none | moderate | extreme")] = "extreme",
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(help="Random seed of the scene, trajectory and noise.")] = 0,
     noise: Annotated[bool, typer.Option(help="Sensor-like depth noise.")] = True,
     holes: Annotated[bool, typer.Option(help="Depth holes and dropouts.")] = True,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing sequence made by synth in OUT.")] = False,
 ) -> None:
     """Generate a synthetic blurred RGB-D sequence with exact ground truth."""
+    import shutil
+    import tempfile
+
     from .synth import SynthConfig, generate
 
     try:
@@ -149,9 +173,33 @@ def synth(
                              seed=seed, depth_noise=noise, holes=holes)
     except ValueError as err:
         raise InputError(None, str(err), "see 'taichi-gs synth --help'") from None
-    with progress_bar("synth", frames) as update:
-        generate(config, out, progress=lambda done, total: update(done, total))
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file, not a folder", "give a folder path to write the sequence into")
+    if out.is_dir() and any(out.iterdir()):
+        if not overwrite:
+            raise InputError(out, "folder is not empty", "give a new folder, or --overwrite to replace a synth sequence")
+        if not (out / "synth.json").is_file():
+            raise InputError(out, "folder holds something other than a synth sequence (no synth.json)",
+                             "give a new folder; --overwrite only replaces sequences made by synth")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        with progress_bar("synth", frames) as update:
+            generate(config, staging, progress=lambda done, total: update(done, total))
+        staging.chmod(0o777 & ~_umask())
+        if out.is_dir():
+            shutil.rmtree(out)
+        staging.rename(out)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
     console.print(f"wrote {frames} frames to {out}")
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 @app.command("eval")
@@ -183,7 +231,12 @@ def eval_(
         raise InputError(None, "nothing to evaluate", "give RUN_DIR, or --traj and --gt-traj")
     from .report import evaluate_run
 
-    metrics = evaluate_run(run_dir, gt)
+    from .io.lock import output_lock
+
+    if not run_dir.is_dir():
+        raise InputError(run_dir, "run folder not found", "give the --out folder of a taichi-gs run")
+    with output_lock(run_dir):
+        metrics = evaluate_run(run_dir, gt)
     typer.echo(json.dumps(metrics, indent=2) if as_json else f"wrote {run_dir / 'metrics.json'}")
 
 
@@ -199,6 +252,10 @@ CxOption = Annotated[Optional[float], typer.Option("--cx", help="Principal point
 CyOption = Annotated[Optional[float], typer.Option("--cy", help="Principal point y (px).")]
 DepthScaleOption = Annotated[Optional[float], typer.Option("--depth-scale", help="Depth PNG units per metre (TUM: 5000).")]
 ConfigOption = Annotated[Optional[Path], typer.Option("--config", help="TOML file with [pose], [refine], [deblur] tables.")]
+TrustDepthOption = Annotated[bool, typer.Option(
+    "--trust-depth-scale", help="Accept a median depth outside 0.25-6 m (the indoor check of the depth scale).")]
+TimeToleranceOption = Annotated[Optional[float], typer.Option(
+    "--time-tolerance", min=0.0, help="TUM layout: max seconds between associated colour and depth (default 0.02).")]
 
 
 @app.command()
@@ -210,18 +267,24 @@ def pose(
     config_file: ConfigOption = None,
     fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
     depth_scale: DepthScaleOption = None,
+    trust_depth_scale: TrustDepthOption = False,
+    time_tolerance: TimeToleranceOption = None,
 ) -> None:
     """Stage 1: relative poses from optical flow and depth, refined by ICP, chained; fused point cloud."""
+    from .io.lock import output_lock
     from .io.sequence import load_sequence
-    from .pipeline import resolve_sections, run_stage, write_run_info
+    from .pipeline import check_run_input, resolve_sections, run_stage, write_run_info
 
     _check_output_folder(folder, out)
-    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale))
     config = resolve_sections("fast", config_file, only=("pose",))["pose"]
     if flow_dir is not None:
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
-    write_run_info(out, folder)
-    _, summary = run_stage("pose", sequence, out, config, progress_bar)
+    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale)
+    _init_backend()
+    with output_lock(out):
+        check_run_input(out, sequence)
+        write_run_info(out, sequence)
+        _, summary = run_stage("pose", sequence, out, config, progress_bar)
     console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
 
 
@@ -243,13 +306,18 @@ def refine(
     config_file: ConfigOption = None,
 ) -> None:
     """Stage 2: refine poses, positions and opacities of fixed-scale Gaussians against the input depth."""
-    from .io.sequence import load_sequence
-    from .pipeline import resolve_sections, run_stage, sequence_folder
+    from .io.lock import output_lock
+    from .pipeline import open_run_sequence, resolve_sections, resolve_stage, run_stage
 
-    sequence = load_sequence(sequence_folder(out))
-    config = resolve_sections(preset.value, config_file, only=("refine",))["refine"]
+    sections = resolve_sections(preset.value, config_file, only=("pose", "refine"))
+    config = resolve_stage("refine", sections)
+    for given in (poses, points):
+        if given is not None and not given.is_file():
+            raise InputError(given, "file not found", "give an existing TUM trajectory (--poses) or PLY (--points)")
+    sequence = open_run_sequence(out)
     _init_backend()
-    _, summary = run_stage("refine", sequence, out, config, progress_bar, poses=poses, points=points)
+    with output_lock(out):
+        _, summary = run_stage("refine", sequence, out, config, progress_bar, poses=poses, points=points)
     console.print(f"stage 2 done: {summary}; results in {out / 'refine'}")
 
 
@@ -263,23 +331,30 @@ def reconstruct(
     force: Annotated[Optional[str], typer.Option(help="Rerun from this stage on: pose | refine | deblur.")] = None,
     fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
     depth_scale: DepthScaleOption = None,
+    trust_depth_scale: TrustDepthOption = False,
+    time_tolerance: TimeToleranceOption = None,
 ) -> None:
     """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
+    from .io.lock import output_lock
     from .io.sequence import load_sequence
+    from .pipeline import STAGES
     from .pipeline import reconstruct as run_all
     from .pipeline import resolve_sections
 
+    if force is not None and force not in STAGES:
+        raise InputError(None, f"unknown stage {force!r} for --force", f"use one of {', '.join(STAGES)}")
     _check_output_folder(folder, out)
-    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale))
-    sequence.check_all()
     sections = resolve_sections(preset.value, config_file)
+    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale)
+    sequence.check_all()
     _init_backend()
 
     def report(stage) -> None:
         verb = "done" if stage.ran else "already done, skipped"
         console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
 
-    run_all(sequence, out, sections, progress_bar, force=force, on_stage=report)
+    with output_lock(out):
+        run_all(sequence, out, sections, progress_bar, force=force, on_stage=report)
     console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 
@@ -299,12 +374,12 @@ def render(
 ) -> None:
     """Sharp renders of the newest splats along a camera path: OUT/render/PATH/*.png and PATH.gif."""
     from .export import render_path
-    from .io.sequence import load_sequence
-    from .pipeline import sequence_folder
+    from .io.lock import output_lock
+    from .pipeline import open_run_sequence
 
-    sequence = load_sequence(sequence_folder(out))
+    sequence = open_run_sequence(out)
     _init_backend()
-    with progress_bar(f"render {path.value}", frames) as update:
+    with output_lock(out), progress_bar(f"render {path.value}", frames) as update:
         target = render_path(out, sequence, path.value, frames, scale, progress=update)
     console.print(f"wrote {frames} views to {target} and {target}.gif")
 
@@ -324,16 +399,20 @@ def export(
 ) -> None:
     """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, or PLYs."""
     from .export import export_colmap, export_nerfstudio, export_ply
-    from .io.sequence import load_sequence
-    from .pipeline import sequence_folder
+    from .io.lock import output_lock
+    from .pipeline import STAGES, open_run_sequence
 
+    sequence = open_run_sequence(out)
     dest = dest or out / "export" / format.value
-    if format is ExportFormat.ply:
-        written = export_ply(out, dest)
-    else:
-        sequence = load_sequence(sequence_folder(out))
-        exporter = export_nerfstudio if format is ExportFormat.nerfstudio else export_colmap
-        written = exporter(out, sequence, dest)
+    _check_output_folder(sequence.root, dest, "--dest")
+    if dest.resolve() == out.resolve() or any(dest.resolve() == (out / stage).resolve() for stage in STAGES):
+        raise InputError(dest, "would overwrite the run's own results", "give a --dest outside the stage folders")
+    with output_lock(out):
+        if format is ExportFormat.ply:
+            written = export_ply(out, dest)
+        else:
+            exporter = export_nerfstudio if format is ExportFormat.nerfstudio else export_colmap
+            written = exporter(out, sequence, dest)
     console.print(f"exported {format.value} to {written}")
 
 
@@ -347,17 +426,20 @@ def deblur(
     holdout: Annotated[Optional[str], typer.Option(help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
-    from .io.sequence import load_sequence
-    from .pipeline import resolve_sections, run_stage, sequence_folder
+    from .io.lock import output_lock
+    from .pipeline import open_run_sequence, resolve_sections, run_stage
+    from .validation import validate_sections
 
-    sequence = load_sequence(sequence_folder(out))
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
     changes: dict[str, int] = {} if k is None else {"k": k}
     if holdout is not None:
         changes["holdout_every"] = _holdout_every(holdout)
     config = dataclasses.replace(config, **changes)
+    validate_sections({"deblur": config})
+    sequence = open_run_sequence(out)
     _init_backend()
-    _, summary = run_stage("deblur", sequence, out, config, progress_bar)
+    with output_lock(out):
+        _, summary = run_stage("deblur", sequence, out, config, progress_bar)
     console.print(f"stage 3 done: {summary}; results in {out / 'deblur'}", highlight=False)
 
 
@@ -377,11 +459,14 @@ def _init_backend() -> None:
     console.print(f"Taichi backend: {backend.arch}", highlight=False)
 
 
-def _check_output_folder(folder: Path, out: Path) -> None:
-    """Refuse to write inside the input folder."""
-    folder, target = folder.resolve(), out.resolve()
+def _check_output_folder(folder: Path, out: Path, option: str = "--out") -> None:
+    """Refuse to write inside the input folder, or into a path that is a file."""
+    folder, target = Path(folder).resolve(), out.resolve()
     if target == folder or folder in target.parents:
-        raise InputError(out, "output folder lies inside the input folder", "choose an --out outside the input (inputs are never written to)")
+        raise InputError(out, "output folder lies inside the input folder",
+                         f"choose a {option} outside the input (inputs are never written to)")
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file, not a folder", f"give a folder path for {option}")
 
 
 if __name__ == "__main__":  # pragma: no cover

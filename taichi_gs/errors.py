@@ -1,4 +1,5 @@
-"""Errors a user can act on: the CLI prints them on one line and exits with code 2."""
+"""Errors a user can act on: the CLI prints them on one line and exits with code 2 (bad input) or 4
+(an optimiser diverged)."""
 
 from __future__ import annotations
 
@@ -18,3 +19,12 @@ class InputError(Exception):
 
 class BackendError(RuntimeError):
     """The requested Taichi backend is not available on this machine."""
+
+
+class DivergenceError(RuntimeError):
+    """An optimiser diverged: non-finite values or a runaway loss. Names the stage and iteration."""
+
+    def __init__(self, stage: str, iteration: int, problem: str):
+        self.stage = stage
+        self.iteration = iteration
+        super().__init__(f"{stage} diverged at iteration {iteration}: {problem}")

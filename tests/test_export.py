@@ -29,7 +29,7 @@ def finished_run(tmp_path_factory) -> tuple[Path, Path]:
                        root / "seq")
     sequence = load_sequence(seq_dir)
     run = root / "run"
-    write_run_info(run, seq_dir)
+    write_run_info(run, sequence)
     write_tum(run / "refine" / "trajectory.txt", sequence.timestamps, sequence.gt_poses)
     rng = np.random.default_rng(0)
     points = g.transform(sequence.gt_poses[0], rng.uniform(-1, 1, (500, 3)) + [0, 0, 2.5])  # in view of frame 0

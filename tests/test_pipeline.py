@@ -1,16 +1,24 @@
-"""The pipeline's bookkeeping: which stages a rerun skips, resumes, or starts again."""
+"""The pipeline's bookkeeping: which stages a rerun skips, resumes, or starts again, and why."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
 from taichi_gs import pipeline
 from taichi_gs.errors import InputError
-from taichi_gs.pipeline import STAGE_OUTPUTS, STAGES, reconstruct, resolve_sections, resolve_stage, stage_done
+from taichi_gs.io.sequence import IntrinsicsOverride, load_sequence
+from taichi_gs.pipeline import (
+    STAGE_OUTPUTS, STAGES, open_run_sequence, reconstruct, resolve_sections, resolve_stage, run_stage, stage_done,
+    stage_inputs,
+)
 
 
 @contextmanager
@@ -18,65 +26,134 @@ def _no_progress(description, total):
     yield lambda *args, **kwargs: None
 
 
-class _FakeSequence:
-    root = Path("/nonexistent/sequence")
-
-
 @pytest.fixture
 def fake_stages(monkeypatch):
-    """Stages that only write their output files; records which ran."""
+    """Stages that only write their output files (content depends on config and input); records which ran."""
     calls: list[str] = []
 
-    def run_stage(stage, sequence, out, section, progress, poses=None, points=None):
+    def execute(stage, sequence, out, section, progress, poses=None, points=None):
         calls.append(stage)
+        (out / stage).mkdir(parents=True, exist_ok=True)
+        content = json.dumps([dataclasses.asdict(section), str(sequence.root), sequence.intrinsics.depth_scale],
+                             default=str)
         for name in STAGE_OUTPUTS[stage]:
-            (out / stage).mkdir(parents=True, exist_ok=True)
-            (out / stage / name).write_text("x")
-        pipeline._mark_done(out, stage, section, 0.1, "cpu", "fake")
+            (out / stage / name).write_text(content)
         return section, "fake"
 
-    monkeypatch.setattr(pipeline, "run_stage", run_stage)
+    monkeypatch.setattr(pipeline, "_execute", execute)
     return calls
 
 
-def test_rerun_skips_done_stages_and_a_config_change_reruns_from_there(tmp_path, fake_stages):
+def test_rerun_skips_done_stages_and_a_config_change_reruns_from_there(own_layout, tmp_path, fake_stages):
+    sequence = load_sequence(own_layout)
     sections = resolve_sections("fast")
-    reports = reconstruct(_FakeSequence(), tmp_path, sections, _no_progress)
+    reports = reconstruct(sequence, tmp_path, sections, _no_progress)
     assert fake_stages == list(STAGES) and all(r.ran for r in reports)
     assert (tmp_path / "config.toml").is_file() and (tmp_path / "run.json").is_file()
 
     fake_stages.clear()
-    reports = reconstruct(_FakeSequence(), tmp_path, sections, _no_progress)
+    reports = reconstruct(sequence, tmp_path, sections, _no_progress)
     assert fake_stages == [] and not any(r.ran for r in reports)
 
     changed = dict(sections, refine=dataclasses.replace(sections["refine"], seed=7))
-    reconstruct(_FakeSequence(), tmp_path, changed, _no_progress)
+    reconstruct(sequence, tmp_path, changed, _no_progress)
     assert fake_stages == ["refine", "deblur"]
 
 
-def test_force_reruns_from_the_named_stage(tmp_path, fake_stages):
+def test_force_reruns_from_the_named_stage(own_layout, tmp_path, fake_stages):
+    sequence = load_sequence(own_layout)
     sections = resolve_sections("fast")
-    reconstruct(_FakeSequence(), tmp_path, sections, _no_progress)
+    reconstruct(sequence, tmp_path, sections, _no_progress)
     fake_stages.clear()
-    reconstruct(_FakeSequence(), tmp_path, sections, _no_progress, force="deblur")
+    reconstruct(sequence, tmp_path, sections, _no_progress, force="deblur")
     assert fake_stages == ["deblur"]
     with pytest.raises(InputError, match="unknown stage"):
-        reconstruct(_FakeSequence(), tmp_path, sections, _no_progress, force="sharpen")
+        reconstruct(sequence, tmp_path, sections, _no_progress, force="sharpen")
 
 
-def test_a_stage_with_a_missing_output_or_no_marker_is_not_done(tmp_path, fake_stages):
+def test_a_stage_with_a_missing_output_or_a_corrupt_marker_is_not_done(own_layout, tmp_path, fake_stages):
+    sequence = load_sequence(own_layout)
     sections = resolve_sections("fast")
-    reconstruct(_FakeSequence(), tmp_path, sections, _no_progress)
+    reconstruct(sequence, tmp_path, sections, _no_progress)
     refine = resolve_stage("refine", sections)
     assert refine.voxel_size == sections["pose"].voxel_size_m  # filled in from stage 1's config
-    assert stage_done(tmp_path, "refine", refine)
+    fingerprint = stage_inputs("refine", sequence, tmp_path, refine)
+    assert stage_done(tmp_path, "refine", fingerprint)
     (tmp_path / "refine" / "splats.ply").unlink()
-    assert not stage_done(tmp_path, "refine", refine)
+    assert not stage_done(tmp_path, "refine", fingerprint)
     (tmp_path / "deblur" / "done.json").write_text("{not json")
-    assert not stage_done(tmp_path, "deblur", sections["deblur"])
+    assert not stage_done(tmp_path, "deblur", stage_inputs("deblur", sequence, tmp_path, sections["deblur"]))
     fake_stages.clear()
-    reconstruct(_FakeSequence(), tmp_path, sections, _no_progress)
+    reconstruct(sequence, tmp_path, sections, _no_progress)
     assert fake_stages == ["refine", "deblur"]
+
+
+def test_changed_input_files_rerun_every_stage(own_layout, tmp_path, fake_stages):
+    sections = resolve_sections("fast")
+    reconstruct(load_sequence(own_layout), tmp_path, sections, _no_progress)
+    depth = own_layout / "depth" / "000001.png"
+    cv2.imwrite(str(depth), np.full((30, 40), 2.5 * 5000, dtype=np.uint16))  # the user fixed a frame
+    fake_stages.clear()
+    reconstruct(load_sequence(own_layout), tmp_path, sections, _no_progress)
+    assert fake_stages == list(STAGES)
+
+
+def test_a_corrected_depth_scale_reruns_every_stage(own_layout, tmp_path, fake_stages):
+    sections = resolve_sections("fast")
+    reconstruct(load_sequence(own_layout), tmp_path, sections, _no_progress)
+    fake_stages.clear()
+    reconstruct(load_sequence(own_layout, IntrinsicsOverride(depth_scale=4000.0)), tmp_path, sections, _no_progress)
+    assert fake_stages == list(STAGES)
+    assert open_run_sequence(tmp_path).intrinsics.depth_scale == 4000.0  # later commands reopen it the same way
+
+
+def test_another_input_into_a_finished_run_folder_is_refused(own_layout, tmp_path, fake_stages):
+    sections = resolve_sections("fast")
+    out = tmp_path / "run"
+    reconstruct(load_sequence(own_layout), out, sections, _no_progress)
+    other = tmp_path / "other"
+    shutil.copytree(own_layout, other)
+    before = (out / "run.json").read_text()
+    with pytest.raises(InputError, match="holds the results of another input sequence"):
+        reconstruct(load_sequence(other), out, sections, _no_progress)
+    assert (out / "run.json").read_text() == before
+
+
+def test_a_rerun_stage_1_invalidates_stages_2_and_3(own_layout, tmp_path, fake_stages):
+    sequence = load_sequence(own_layout)
+    sections = resolve_sections("fast")
+    reconstruct(sequence, tmp_path, sections, _no_progress)
+    pose = dataclasses.replace(sections["pose"], max_points=1234)
+    run_stage("pose", sequence, tmp_path, pose, _no_progress)  # as `taichi-gs pose` with other settings
+    assert not (tmp_path / "refine").exists() and not (tmp_path / "deblur").exists()
+    fake_stages.clear()
+    reconstruct(sequence, tmp_path, dict(sections, pose=pose), _no_progress)
+    assert fake_stages == ["refine", "deblur"]
+
+
+def test_replaced_stage_1_outputs_invalidate_stage_2(own_layout, tmp_path, fake_stages):
+    sequence = load_sequence(own_layout)
+    sections = resolve_sections("fast")
+    reconstruct(sequence, tmp_path, sections, _no_progress)
+    (tmp_path / "pose" / "trajectory.txt").write_text("# edited by hand\n")
+    fake_stages.clear()
+    reconstruct(sequence, tmp_path, sections, _no_progress)
+    assert fake_stages == ["refine", "deblur"]
+
+
+def test_caches_made_from_other_inputs_are_not_resumed(own_layout, tmp_path, fake_stages):
+    sequence = load_sequence(own_layout)
+    section = resolve_sections("fast")["pose"]
+    cache = tmp_path / "pose" / "pairs" / "000000.json"
+    cache.parent.mkdir(parents=True)
+    cache.write_text("{}")  # left by a run on other input (no inputs.json records what it belongs to)
+    run_stage("pose", sequence, tmp_path, section, _no_progress)
+    assert not cache.exists()
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text("{}")  # a cache of this very run, interrupted: kept for the resume
+    (tmp_path / "pose" / "done.json").unlink()
+    run_stage("pose", sequence, tmp_path, section, _no_progress)
+    assert cache.exists()
 
 
 def test_config_file_overrides_presets_and_rejects_unknown_keys(tmp_path):
@@ -91,8 +168,38 @@ def test_config_file_overrides_presets_and_rejects_unknown_keys(tmp_path):
         resolve_sections("turbo")
 
 
+@pytest.mark.parametrize("table, line, message", [
+    ("pose", 'flow_preset = "nonsense"', "flow_preset"),
+    ("pose", "voxel_size_m = 0.0", "voxel_size_m"),
+    ("refine", "lr_means = 1e12", "learning rate"),
+    ("refine", "lr_means = nan", "not a finite number"),
+    ("deblur", "k = 0", "k = 0"),
+    ("deblur", "holdout_every = 1", "holdout_every"),
+    ("pose", "min_depth_m = 20.0", "min_depth_m must be below max_depth_m"),
+])
+def test_bad_config_values_are_refused_before_any_work(tmp_path, table, line, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(f"[{table}]\n{line}\n")
+    for only in (STAGES, ("pose",)):  # every table is checked, whichever stage command reads the file
+        with pytest.raises(InputError, match=message):
+            resolve_sections("fast", path, only=only)
+
+
+def test_presets_pass_their_own_checks():
+    for preset in ("fast", "paper"):
+        assert set(resolve_sections(preset)) == set(STAGES)
+
+
 def test_one_config_file_serves_every_stage_command(tmp_path):
     both = tmp_path / "all.toml"
     both.write_text("[refine]\nseed = 3\n\n[deblur]\nk = 5\n")
     assert set(resolve_sections("fast", both, only=("refine",))) == {"refine"}
     assert resolve_sections("fast", both, only=("deblur",))["deblur"].k == 5
+
+
+def test_a_corrupt_run_record_is_a_clear_error(tmp_path):
+    (tmp_path / "run.json").write_text("\x00garbage")
+    with pytest.raises(InputError, match="corrupt run record"):
+        open_run_sequence(tmp_path)
+    with pytest.raises(InputError, match="run folder not found"):
+        open_run_sequence(tmp_path / "missing")

@@ -179,3 +179,38 @@ def test_a_diverging_optimiser_stops_naming_stage_and_iteration(tiny, tmp_path, 
     assert result.exit_code == 4
     assert "stage 2 (refine) diverged at iteration 0" in result.output
     assert not (run / "refine" / "trajectory.txt").exists()
+
+
+@pytest.mark.parametrize("stage", ["refine", "deblur"])
+def test_divergence_mid_stage_exits_4_keeping_the_last_good_checkpoint(tiny, tmp_path, monkeypatch, stage):
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from taichi_gs.cli import app
+    from taichi_gs.deblur_model import BlurScene
+    from taichi_gs.refine_model import DepthRefiner
+
+    run = tmp_path / "run"
+    kept = ("pose",) if stage == "refine" else ("pose", "refine")
+    shutil.copytree(tiny["reference"], run, ignore=lambda folder, names: [
+        n for n in names if Path(folder) == tiny["reference"] and n not in (*kept, "run.json", "config.toml")])
+    model = DepthRefiner if stage == "refine" else BlurScene
+    original = model.step
+    calls = []
+
+    def fly_away_after_30_steps(self, *args, **kwargs):  # a runaway learning rate, as Gaussians see it
+        calls.append(1)
+        result = original(self, *args, **kwargs)
+        if len(calls) > 30:
+            arrays = self.gaussians.params["means"]
+            arrays.from_numpy(arrays.to_numpy() + 1e9)
+        return result
+
+    monkeypatch.setattr(model, "step", fly_away_after_30_steps)
+    result = CliRunner().invoke(app, ["--arch", "cpu", stage, str(run), "--config", str(tiny["config"])])
+    assert result.exit_code == 4, result.output
+    assert "diverged at iteration" in result.output and "flew" in result.output
+    assert not (run / stage / "done.json").exists()
+    checkpoint = np.load(run / stage / "checkpoint.npz")
+    assert int(checkpoint["iteration"]) == 20  # the last one saved before the parameters went bad

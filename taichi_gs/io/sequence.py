@@ -18,6 +18,7 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -28,6 +29,8 @@ from .trajectory import read_tum_rows, tum_rows_to_poses
 
 MAX_TIME_DIFFERENCE = 0.02  # seconds, TUM associate.py's default
 MEDIAN_DEPTH_RANGE = (0.1, 100.0)  # metres: outside it the depth scale is surely wrong
+INDOOR_MEDIAN_DEPTH = (0.25, 6.0)  # metres: indoor RGB-D sensors; outside it the scale is likely wrong
+COMMON_DEPTH_SCALES = (1000.0, 5000.0, 6553.5, 4000.0, 10000.0, 1.0)  # mm, TUM, Replica, RealSense, ...
 
 
 @dataclass(frozen=True)
@@ -70,7 +73,8 @@ class Sequence:
     Attributes: ``root``, ``layout`` ("tum" or "taichi-gs"), ``intrinsics``, ``timestamps`` (N,),
     ``rgb_paths``, ``depth_paths``, ``names`` (colour file stems), ``gt_poses`` (N x 4 x 4
     camera-to-world, NaN where ground truth does not cover a frame, or None), ``exposure_poses``
-    (N x 2 x 4 x 4 start/end, or None) and ``sharp_paths`` (or None).
+    (N x 2 x 4 x 4 start/end, or None), ``sharp_paths`` (or None) and ``load_options`` (how
+    :func:`load_sequence` was called, so a later command reopens the same sequence).
     """
 
     def __init__(
@@ -95,6 +99,7 @@ class Sequence:
         self.gt_poses = gt_poses
         self.exposure_poses = exposure_poses
         self.sharp_paths = sharp_paths
+        self.load_options: dict[str, Any] = {}
 
     def __len__(self) -> int:
         return len(self.rgb_paths)
@@ -196,10 +201,17 @@ def _imread(path: Path) -> np.ndarray:
 def load_sequence(
     folder: str | Path,
     override: IntrinsicsOverride | None = None,
-    max_time_difference: float = MAX_TIME_DIFFERENCE,
+    max_time_difference: float | None = None,
+    trust_depth_scale: bool = False,
 ) -> Sequence:
-    """Open a sequence folder (TUM or own layout), checking lists, files, intrinsics and depth scale."""
+    """Open a sequence folder (TUM or own layout), checking lists, files, intrinsics and depth scale.
+
+    The median valid depth must look like an indoor RGB-D capture (0.25-6 m), which catches the usual
+    depth-scale mix-ups (1000 for 5000); ``trust_depth_scale`` relaxes that to 0.1-100 m for scenes
+    that really are that close or far. The call's options are kept in ``sequence.load_options``.
+    """
     root = Path(folder)
+    max_time_difference = MAX_TIME_DIFFERENCE if max_time_difference is None else max_time_difference
     if not root.is_dir():
         raise InputError(root, "sequence folder not found", "give the folder holding rgb.txt/depth.txt or frames.txt")
     override = override or IntrinsicsOverride()
@@ -212,7 +224,9 @@ def load_sequence(
                          "give a TUM RGB-D folder or one written by 'taichi-gs synth'")
     if len(sequence) < 2:
         raise InputError(sequence.root, f"sequence has {len(sequence)} frame(s)", "give at least 2 frames")
-    _check_depth_scale(sequence)
+    _check_depth_scale(sequence, trust_depth_scale)
+    sequence.load_options = {"override": override.values(), "max_time_difference": max_time_difference,
+                             "trust_depth_scale": trust_depth_scale}
     return sequence
 
 
@@ -253,7 +267,7 @@ def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: f
     matches = associate(rgb_times, depth_times, max_difference)
     if not matches:
         raise InputError(rgb_list, f"no colour frame has a depth frame within {max_difference} s",
-                         "check that rgb.txt and depth.txt share a clock, or raise the association tolerance")
+                         "check that rgb.txt and depth.txt share a clock, or raise --time-tolerance (seconds)")
     timestamps = np.array([rgb_times[i] for i, _ in matches])
     rgb_paths = [_listed_file(root, rgb_rows[i][1], rgb_list) for i, _ in matches]
     depth_paths = [_listed_file(root, depth_rows[j][1], depth_list) for _, j in matches]
@@ -282,9 +296,19 @@ def associate(first: np.ndarray, second: np.ndarray, max_difference: float) -> l
     return sorted(matches)
 
 
+def _read_text(path: Path) -> str:
+    """A list file's text (UTF-8), or a one-line error."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise InputError(path, f"not UTF-8 text (byte {err.start})", "save the list as plain UTF-8 text") from None
+    except OSError as err:
+        raise InputError(path, f"cannot read ({err.strerror})", "check the file's permissions") from None
+
+
 def _read_list(path: Path, columns: int) -> list[list[str]]:
     rows = []
-    for n, line in enumerate(path.read_text().splitlines(), start=1):
+    for n, line in enumerate(_read_text(path).splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -325,7 +349,7 @@ def _resolve_intrinsics(root: Path, override: IntrinsicsOverride, first_rgb: Pat
     values: dict[str, float] = {}
     if json_path.is_file():
         try:
-            values = json.loads(json_path.read_text())
+            values = json.loads(_read_text(json_path))
         except json.JSONDecodeError as err:
             raise InputError(json_path, f"not valid JSON ({err.msg} at line {err.lineno})", "fix the JSON syntax") from None
         if not isinstance(values, dict):
@@ -357,20 +381,26 @@ def _resolve_intrinsics(root: Path, override: IntrinsicsOverride, first_rgb: Pat
     return intrinsics
 
 
-def _check_depth_scale(sequence: Sequence) -> None:
+def _check_depth_scale(sequence: Sequence, trusted: bool) -> None:
     """Median valid depth over a few frames must be plausible, or the scale is wrong."""
-    picks = np.unique(np.linspace(0, len(sequence) - 1, num=min(3, len(sequence))).astype(int))
+    picks = np.unique(np.linspace(0, len(sequence) - 1, num=min(5, len(sequence))).astype(int))
     depths = [sequence.depth(int(i)) for i in picks]
     valid = np.concatenate([d[d > 0] for d in depths])
     where = sequence.depth_paths[int(picks[0])]
     if valid.size == 0:
         raise InputError(where, "no valid depth in the sampled frames", "check the depth files (0 means invalid)")
     median = float(np.median(valid))
-    lo, hi = MEDIAN_DEPTH_RANGE
-    if not lo <= median <= hi:
-        scale = sequence.intrinsics.depth_scale
-        raise InputError(where, f"median depth is {median:.4g} m with depth_scale {scale:g}",
-                         f"set the right --depth-scale (units per metre; TUM uses 5000, most sensors 1000); median must lie in {lo}-{hi} m")
+    lo, hi = MEDIAN_DEPTH_RANGE if trusted else INDOOR_MEDIAN_DEPTH
+    if lo <= median <= hi:
+        return
+    scale = sequence.intrinsics.depth_scale
+    raw = median * scale
+    likely = min(COMMON_DEPTH_SCALES, key=lambda s: abs(np.log(raw / s / 2.0)))
+    fix = f"the data look like --depth-scale {likely:g} (median {raw / likely:.2f} m)"
+    if not trusted:
+        fix += f"; if {median:.3g} m is right, add --trust-depth-scale"
+    raise InputError(where, f"median depth is {median:.4g} m with depth_scale {scale:g}, implausible for an RGB-D sensor"
+                     f" ({lo}-{hi} m)", fix)
 
 
 def _ground_truth(path: Path, timestamps: np.ndarray) -> np.ndarray | None:

@@ -30,7 +30,11 @@ from ..io.images import encode_depth, to_uint8, write_png
 from ..plots import image_grid, line_plot
 from ..render import virtual_pose
 from ..splats import Splats
+from .divergence import DivergenceGuard
 from .schedule import downsample_depth, exp_decay, scaled_intrinsics
+
+
+PARAMETER_CHECK_EVERY = 50  # iterations between divergence checks of the parameters (a device copy)
 
 
 @dataclass(frozen=True)
@@ -258,6 +262,7 @@ def run_deblur(
     if checkpoint.is_file():
         first, offsets, rng, history = _load_checkpoint(checkpoint, config, model, exposure_adam, offsets, rng, history)
 
+    guard = DivergenceGuard("stage 3 (deblur)", splats.means.mean(axis=0), extent)
     t0 = time.perf_counter()
     for it in range(first, config.iterations):
         fraction = it / max(config.iterations - 1, 1)
@@ -267,7 +272,7 @@ def run_deblur(
                       colors=config.lr_colors)
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
                           config.k, config.lambda_dssim, config.lambda_depth, rates)
-        _check_finite(step, it)
+        guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
             updated = exposure_adam.step(offsets[frame], np.stack([step.grad_start, step.grad_end]), frame, lr_exposure)
@@ -279,6 +284,10 @@ def run_deblur(
         _adapt_density(model, it + 1, config, extent, rng)
         if progress is not None:
             progress(it + 1, config.iterations, loss=loss, psnr=step.psnr, gaussians=model.count)
+        if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 \
+                or it == config.iterations - 1:
+            params = model.arrays()
+            guard.check_parameters(it, params["means"], offsets, *params.values())
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < config.iterations:
             _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history)
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
@@ -298,12 +307,6 @@ def run_deblur(
     return result
 
 
-def _check_finite(step, iteration: int) -> None:
-    values = [*step.losses.values(), *step.grad_start, *step.grad_end]
-    if not np.all(np.isfinite(values)):
-        raise FloatingPointError(f"stage 3 (deblur) diverged at iteration {iteration}: non-finite loss or gradient")
-
-
 def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: float, rng: np.random.Generator) -> None:
     """3DGS's schedule: densify and prune every ``densify_every`` iterations in the densification
     window; reset opacities every ``reset_opacity_every`` iterations inside it."""
@@ -319,10 +322,11 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
                           frame: int, config: DeblurConfig) -> np.ndarray:
     """Fit a held-out frame's exposure offsets, scene frozen, by re-blurring against its blurred input."""
     adam = ExposureAdam(1)
+    guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
     for it in range(config.test_pose_iterations):
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], config.k,
                           config.lambda_dssim, 0.0, rates=None)
-        _check_finite(step, it)
+        guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         d = adam.step(d, np.stack([step.grad_start, step.grad_end]), 0, config.lr_test_pose)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
     return d

@@ -31,6 +31,9 @@ from ..io.trajectory import write_tum
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
 from .pose_solver import SolverSettings, solve
 
+# What a degenerate pair may raise; anything else is a bug or bad input and ends the run.
+NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError)
+
 # Estimate kinds recorded per pair.
 FROM_RGBD, FROM_ICP, FROM_FLOW, FROM_CONSTANT_VELOCITY = "rgbd", "icp", "flow", "constant-velocity"
 
@@ -380,16 +383,15 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
 
 
 def _estimate_pair(sequence, provider: FlowProvider, k: int, K: np.ndarray, config: PoseConfig, prior: np.ndarray) -> RelativePose:
-    """One pair, never raising for numerical trouble: failures become weak constant-velocity pairs."""
+    """One pair; numerical trouble (a singular system, an overflow) makes it a weak constant-velocity
+    pair, recorded with its reason. Input and programming errors are not caught: they end the run."""
     start = time.perf_counter()
     try:
         forward = provider.flow(k, k + 1)
         backward = provider.flow(k + 1, k)
         return estimate_relative_pose(sequence.color(k), sequence.depth(k), sequence.color(k + 1), sequence.depth(k + 1),
                                       K, forward, config, backward_flow=backward, prior=prior)
-    except InputError:
-        raise
-    except Exception as err:  # one bad pair must not end the run; the reason is recorded
+    except NUMERICAL_FAILURES as err:  # one degenerate pair must not end the run; the reason is recorded
         return _fallback(prior, f"{type(err).__name__}: {err}", start)
 
 

@@ -39,7 +39,11 @@ from ..io.trajectory import read_tum, write_tum
 from ..plots import line_plot
 from ..refine_model import DepthRefiner
 from ..splats import splats_from_points
+from .divergence import DivergenceGuard
 from .schedule import downsample_depth, exp_decay, scaled_intrinsics
+
+
+PARAMETER_CHECK_EVERY = 50  # iterations between divergence checks of the parameters (a device copy)
 
 
 @dataclass(frozen=True)
@@ -163,6 +167,8 @@ def run_refine(
         model.load_state({k[6:]: state[k] for k in state.files if k.startswith("model_")})
         history = json.loads(str(state["history"]))
 
+    centre = points.mean(axis=0)
+    guard = DivergenceGuard("stage 2 (refine)", centre, max(extent, float(np.linalg.norm(points - centre, axis=1).max())))
     views = min(config.views_per_step, n_frames)
     t0 = time.perf_counter()
     for it in range(start_iteration, total):
@@ -173,8 +179,7 @@ def run_refine(
             lambda_depth=config.lambda_depth, lambda_coverage=config.lambda_coverage,
             lambda_opacity=config.lambda_opacity, lrs=_gaussian_lrs(config, fraction, extent),
         )
-        if not all(np.all(np.isfinite(g)) for g in pose_grads) or not np.isfinite(losses["depth"]):
-            raise FloatingPointError(f"stage 2 (refine) diverged at iteration {it}: non-finite loss or gradient")
+        guard.check_step(it, losses["depth"], pose_grads)
         if fraction >= config.pose_warmup_fraction:
             lr = _pose_lrs(config, fraction)
             for f, grad in zip(frames, pose_grads):
@@ -188,6 +193,8 @@ def run_refine(
             model.reset_opacity(config.initial_opacity)
         if progress is not None:
             progress(it + 1, total, depth_l1=losses["depth"], gaussians=model.count)
+        if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 or it == total - 1:
+            guard.check_parameters(it, model.means(), poses, model.opacity_logits())
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < total:
             _save_checkpoint(checkpoint, it + 1, config, poses, pose_adam, pose_steps, model, history)
     seconds = (time.perf_counter() - t0) / max(total - start_iteration, 1)
