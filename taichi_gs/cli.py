@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import platform
 import sys
 from collections.abc import Callable, Iterator
@@ -164,8 +163,10 @@ def eval_(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
     """Evaluate a run folder (writes metrics.json) or a pair of TUM trajectories (--traj, --gt-traj)."""
-    from .evaluate import match_by_time, trajectory_errors
+    from .evaluate import match_by_time
+    from .io import jsonout
     from .io.trajectory import read_tum
+    from .report import trajectory_record
 
     if traj is not None or gt_traj is not None:
         if traj is None or gt_traj is None:
@@ -176,15 +177,17 @@ def eval_(
         if len(i) < 3:
             raise InputError(traj, f"only {len(i)} poses match {gt_traj.name} by timestamp (within 0.01 s)",
                              "give trajectories of the same sequence")
-        result = trajectory_errors(est[i], ref[j]).as_dict()
-        typer.echo(json.dumps(result) if as_json else "\n".join(f"{k:12s} {v}" for k, v in result.items()))
+        dropped = [] if len(i) == len(t_est) else [{"reason": f"no pose of {gt_traj.name} within 0.01 s",
+                                                   "count": len(t_est) - len(i), "frames": []}]
+        result = trajectory_record(est[i], ref[j], dropped)
+        typer.echo(jsonout.dumps(result) if as_json else "\n".join(f"{k:12s} {v}" for k, v in result.items()))
         return
     if run_dir is None:
         raise InputError(None, "nothing to evaluate", "give RUN_DIR, or --traj and --gt-traj")
     from .report import evaluate_run
 
     metrics = evaluate_run(run_dir, gt)
-    typer.echo(json.dumps(metrics, indent=2) if as_json else f"wrote {run_dir / 'metrics.json'}")
+    typer.echo(jsonout.dumps(metrics, indent=2) if as_json else f"wrote {run_dir / 'metrics.json'}")
 
 
 def _intrinsics_override(fx, fy, cx, cy, depth_scale):

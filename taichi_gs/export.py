@@ -8,7 +8,6 @@ destination folder; the run folder and the input are only read.
 
 from __future__ import annotations
 
-import json
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -20,6 +19,7 @@ from .camera_paths import orbit_path, trajectory_path
 from .errors import InputError
 from .geometry import intrinsics_matrix, invert, rotmat_to_quat
 from .io.atomic import atomic_path, write_text
+from .io import jsonout
 from .io.images import to_uint8, write_png
 from .io.ply import read_point_cloud, read_splats
 from .io.sequence import Sequence
@@ -99,7 +99,7 @@ def export_nerfstudio(run_dir: Path, sequence: Sequence, dest: Path) -> Path:
         _copy(cloud, dest / "points.ply")
         transforms["ply_file_path"] = "points.ply"
     path = dest / "transforms.json"
-    write_text(path, json.dumps(transforms, indent=2) + "\n")
+    write_text(path, jsonout.dumps(transforms, indent=2) + "\n")
     return path
 
 

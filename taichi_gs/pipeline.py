@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import resource
 import shutil
 import sys
@@ -24,8 +25,10 @@ from typing import Any
 from .config import read_config, write_config
 from .errors import InputError
 from .io.atomic import write_text
+from .io import jsonout
 from .io.sequence import Sequence
 
+log = logging.getLogger("taichi_gs")
 STAGES = ("pose", "refine", "deblur")
 DONE_FILE = "done.json"
 STAGE_OUTPUTS = {
@@ -53,7 +56,7 @@ class StageReport:
 
 def write_run_info(run_dir: Path, sequence_folder: Path) -> None:
     """Record which sequence a run folder was made from, so `eval` can find its ground truth."""
-    write_text(run_dir / RUN_INFO, json.dumps({"sequence": str(sequence_folder.resolve())}, indent=2) + "\n")
+    write_text(run_dir / RUN_INFO, jsonout.dumps({"sequence": str(sequence_folder.resolve())}, indent=2) + "\n")
 
 
 def sequence_folder(run_dir: Path, gt: Path | None = None) -> Path:
@@ -102,7 +105,7 @@ def peak_rss_mb() -> float:
 
 
 def _config_record(section: Any) -> dict[str, Any]:
-    return json.loads(json.dumps(dataclasses.asdict(section), default=list))
+    return json.loads(jsonout.dumps(dataclasses.asdict(section)))
 
 
 def stage_done(out: Path, stage: str, section: Any) -> bool:
@@ -127,10 +130,11 @@ def read_done(out: Path, stage: str) -> dict[str, Any] | None:
         return None
 
 
-def _mark_done(out: Path, stage: str, section: Any, seconds: float, arch: str, summary: str) -> None:
+def _mark_done(out: Path, stage: str, section: Any, seconds: float, arch: str, summary: str,
+               warnings: list[str] | None = None) -> None:
     record = {"config": _config_record(section), "seconds": seconds, "peak_rss_mb": peak_rss_mb(), "arch": arch,
-              "summary": summary}
-    write_text(out / stage / DONE_FILE, json.dumps(record, indent=2) + "\n")
+              "summary": summary, "warnings": list(warnings or [])}
+    write_text(out / stage / DONE_FILE, jsonout.dumps(record, indent=2) + "\n")
 
 
 def clear_stages(out: Path, first: str) -> None:
@@ -178,7 +182,10 @@ def run_stage(stage: str, sequence: Sequence, out: Path, section: Any, progress:
         summary = result.summary()
     else:
         raise ValueError(f"unknown stage {stage!r}")
-    _mark_done(out, stage, section, time.perf_counter() - start, _arch(), summary)
+    warnings = [str(w) for w in getattr(result, "warnings", [])]
+    for warning in warnings:
+        log.warning("%s: %s", stage, warning)
+    _mark_done(out, stage, section, time.perf_counter() - start, _arch(), summary, warnings)
     return section, summary
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from . import __version__
 from .errors import InputError
 from .evaluate import align_trajectory, inverse_depth_rmse, match_by_time, psnr, ssim, trajectory_errors
-from .io.atomic import write_text
+from .io.jsonout import finite_or_null, write_json
 from .io.sequence import Sequence, load_sequence, read_color, read_depth
 from .io.trajectory import read_tum
 from .pipeline import iter_stage_records, sequence_folder
@@ -20,6 +20,11 @@ from .plots import image_grid, line_plot, trajectory_plot
 
 STAGES = ("pose", "refine", "deblur")
 GRID_VIEWS = 4
+IMAGE_NULL_REASONS = {
+    "psnr_db": "a render equals its reference exactly (infinite PSNR)",
+    "blurred_input_psnr_db": "an input equals its sharp reference exactly (infinite PSNR)",
+    "inverse_depth_rmse": "no pixel where both the rendered and the input depth are valid",
+}
 
 
 def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
@@ -40,8 +45,9 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
         t_est, est = read_tum(path)
         i, j = match_by_time(t_est, sequence.timestamps)
         gt = sequence.gt_poses[j]
-        trajectories[stage] = trajectory_errors(est[i], gt).as_dict()
         finite = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
+        dropped = _dropped_frames(len(t_est), len(i), [sequence.names[k] for k in j[~finite]])
+        trajectories[stage] = trajectory_record(est[i], gt, dropped)
         if finite.sum() >= 3:
             moved = align_trajectory(est[i][finite], gt[finite])
             aligned[stage] = moved
@@ -52,7 +58,7 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
         trajectory_plot(run_dir / "report" / "trajectory_top.png", aligned, "trajectories, aligned to ground truth (top view)")
         line_plot(run_dir / "report" / "position_error.png", position_errors, "position error after alignment",
                   "frame", "error (m)")
-    stages = {stage: {k: record.get(k) for k in ("seconds", "peak_rss_mb", "arch", "summary")}
+    stages = {stage: {k: record.get(k) for k in ("seconds", "peak_rss_mb", "arch", "summary", "warnings")}
               for stage, record in iter_stage_records(run_dir)}
     metrics = {
         "trajectory": trajectories,
@@ -62,8 +68,35 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
         "versions": _versions(),
         "sequence": str(sequence.root),
     }
-    write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    metrics["warnings"] = [f"{stage}: {w}" for stage, record in iter_stage_records(run_dir) for w in record.get("warnings", [])]
+    metrics = finite_or_null(metrics, IMAGE_NULL_REASONS)
+    write_json(run_dir / "metrics.json", metrics)
     return metrics
+
+
+def trajectory_record(est: np.ndarray, ref: np.ndarray, dropped: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """ATE/RPE of matched poses as a JSON-ready dict: a metric that cannot be computed is None
+    with a ``<name>_null_reason``; ``dropped`` lists the frames left out and why."""
+    errors = trajectory_errors(est, ref).as_dict()
+    few = f"only {errors['frames']} frame(s) with both an estimate and ground truth"
+    reasons = {"ate_m": f"{few}; ATE needs at least 3",
+               "rpe_trans_m": f"{few}; RPE needs two consecutive such frames",
+               "rpe_rot_deg": f"{few}; RPE needs two consecutive such frames"}
+    record = finite_or_null(errors, reasons)
+    record["dropped_frames"] = dropped or []
+    return record
+
+
+def _dropped_frames(estimated: int, matched: int, no_gt: list[str]) -> list[dict[str, Any]]:
+    """The frames left out of the trajectory metrics, grouped by reason (first 10 names each)."""
+    dropped = []
+    if estimated > matched:
+        dropped.append({"reason": "estimated pose matches no input frame by timestamp (within 0.01 s)",
+                        "count": estimated - matched, "frames": []})
+    if no_gt:
+        dropped.append({"reason": "no ground truth at this frame's time (groundtruth.txt does not cover it)",
+                        "count": len(no_gt), "frames": no_gt[:10]})
+    return dropped
 
 
 def _versions() -> dict[str, str]:

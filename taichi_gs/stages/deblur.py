@@ -23,6 +23,7 @@ from ..deblur_model import BlurScene, Rates
 from ..errors import InputError
 from ..geometry import invert, se3_log
 from ..io.atomic import atomic_path, write_text
+from ..io import jsonout
 from ..io.ply import read_splats, write_splats
 from ..io.sequence import Sequence
 from ..io.trajectory import format_tum, read_tum, write_tum
@@ -94,9 +95,9 @@ class DeblurResult:
     warnings: list[str] = field(default_factory=list)
 
     def summary(self) -> str:
-        text = (f"{self.gaussians} Gaussians, {len(self.train)} train / {len(self.test)} test views, "
+        """One line for the console; ``warnings`` are reported separately, one per line."""
+        return (f"{self.gaussians} Gaussians, {len(self.train)} train / {len(self.test)} test views, "
                 f"{self.seconds_per_iteration * 1000:.0f} ms/iteration")
-        return "; ".join([text] + [f"warning: {w}" for w in self.warnings])
 
 
 def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int]]:
@@ -368,7 +369,7 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     write_tum(stage_dir / "trajectory.txt", sequence.timestamps, result.mid_poses,
               header="taichi-gs stage 3 (deblur), mid-exposure camera-to-world")
     write_text(stage_dir / "exposure.txt", _format_exposure(sequence.timestamps, result.exposure))
-    write_text(stage_dir / "split.json", json.dumps({"train": result.train, "test": result.test,
+    write_text(stage_dir / "split.json", jsonout.dumps({"train": result.train, "test": result.test,
                                                      "holdout_every": config.holdout_every}, indent=2) + "\n")
     _write_renders(stage_dir, sequence, splats, poses, offsets, config)
     history = result.loss_history
@@ -376,7 +377,7 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
         it = np.array([h["iteration"] for h in history], dtype=float)
         line_plot(stage_dir / "loss.png", {"loss": (it, np.array([h["loss"] for h in history]))},
                   "stage 3: deblurring loss", "iteration", "loss", log_y=True)
-    write_text(stage_dir / "history.json", json.dumps(history) + "\n")
+    write_text(stage_dir / "history.json", jsonout.dumps(history) + "\n")
 
 
 def _format_exposure(timestamps: np.ndarray, exposure: np.ndarray) -> str:
