@@ -316,17 +316,18 @@ class ExportFormat(str, Enum):
     nerfstudio = "nerfstudio"
     colmap = "colmap"
     ply = "ply"
+    gs3d = "3dgs"
 
 
 @app.command()
 @handles_errors
 def export(
     out: Annotated[Path, typer.Argument(help="Finished run folder.")],
-    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio | colmap | ply")] = ExportFormat.nerfstudio,
+    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio: transforms.json (depth in mm); colmap: text model; ply: splats (SH degree 3) and points; 3dgs: reference 3DGS model folder.")] = ExportFormat.nerfstudio,
     dest: Annotated[Optional[Path], typer.Option(help="Target folder (default OUT/export/FORMAT).")] = None,
 ) -> None:
-    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, or PLYs."""
-    from .export import export_colmap, export_nerfstudio, export_ply
+    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, PLYs, or a 3DGS model folder."""
+    from .export import export_3dgs, export_colmap, export_nerfstudio, export_ply
     from .io.sequence import load_sequence
     from .pipeline import sequence_folder
 
@@ -335,7 +336,8 @@ def export(
         written = export_ply(out, dest)
     else:
         sequence = load_sequence(sequence_folder(out))
-        exporter = export_nerfstudio if format is ExportFormat.nerfstudio else export_colmap
+        exporter = {ExportFormat.nerfstudio: export_nerfstudio, ExportFormat.colmap: export_colmap,
+                    ExportFormat.gs3d: export_3dgs}[format]
         written = exporter(out, sequence, dest)
     console.print(f"exported {format.value} to {written}")
 
