@@ -6,27 +6,27 @@ import dataclasses
 import functools
 import platform
 import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
 import typer
-from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from . import __version__
+from .cli_options import CommandGroup, parse_holdout, state
 from .errors import BackendError, InputError
+from .terminal import Verbosity, configure_logging, console, progress_bar
 
 app = typer.Typer(
-    help="Splat-based 3D reconstruction from RGB-D sequences with extreme motion blur.",
+    cls=CommandGroup,
+    help="Splat-based 3D reconstruction from RGB-D sequences with extreme motion blur. "
+         "The options below may also follow the command (taichi-gs pose --arch cpu ...).",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-console = Console(stderr=True)
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 4
 EXIT_INTERRUPTED = 130
@@ -36,13 +36,6 @@ class Arch(str, Enum):
     auto = "auto"
     cpu = "cpu"
     cuda = "cuda"
-
-
-class _State:
-    arch: str = "auto"
-
-
-state = _State()
 
 
 def _fail(message: str, code: int) -> None:
@@ -68,28 +61,19 @@ def handles_errors(command: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
-@contextmanager
-def progress_bar(description: str, total: int) -> Iterator[Callable[..., None]]:
-    """A rich progress bar; yields ``update(done, total, **fields)``."""
-    columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[info]}")]
-    with Progress(*columns, console=console, transient=False) as progress:
-        task = progress.add_task(description, total=total, info="")
-
-        def update(done: int, total: int | None = None, **info: Any) -> None:
-            text = "  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in info.items())
-            progress.update(task, completed=done, total=total, info=text)
-
-        yield update
-
-
 @app.callback(invoke_without_command=True)
 def main(
     ctx: typer.Context,
     arch: Annotated[Arch, typer.Option(help="Taichi backend: auto picks CUDA only if a GPU is present.")] = Arch.auto,
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only warnings and errors (OUT/log.txt still gets everything).")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Also print debug messages, and a progress line per step when not on a terminal.")] = False,
 ) -> None:
     """taichi-gs: reconstruct a scene from a motion-blurred RGB-D sequence."""
+    if quiet and verbose:
+        raise typer.BadParameter("--quiet and --verbose exclude each other")
+    state.verbosity = Verbosity.QUIET if quiet else Verbosity.VERBOSE if verbose else Verbosity.NORMAL
+    configure_logging(state.verbosity)
     if version:
         typer.echo(__version__)
         raise typer.Exit()
@@ -106,9 +90,10 @@ def info() -> None:
     import cv2
     import numpy
     import open3d
-    import taichi
 
-    from .kernels import runtime
+    from .kernels import runtime  # first: it keeps Taichi's banner off stdout
+
+    import taichi
 
     backend = runtime.init(state.arch)
     rows = {
@@ -127,16 +112,28 @@ def info() -> None:
         typer.echo(f"{key:15s} {value}")
 
 
+class SynthTrajectory(str, Enum):
+    translation = "translation"
+    turn = "turn"
+    handheld = "handheld"
+
+
+class SynthBlur(str, Enum):
+    none = "none"
+    moderate = "moderate"
+    extreme = "extreme"
+
+
 @app.command()
 @handles_errors
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the sequence into.")],
-    frames: int = 60,
-    width: int = 320,
-    height: int = 240,
-    trajectory: Annotated[str, typer.Option(help="translation | turn | handheld")] = "handheld",
-    blur: Annotated[str, typer.Option(help="none | moderate | extreme")] = "extreme",
-    seed: int = 0,
+    frames: Annotated[int, typer.Option(help="Number of frames (30 per second).")] = 60,
+    width: Annotated[int, typer.Option(help="Image width in pixels (at least 16).")] = 320,
+    height: Annotated[int, typer.Option(help="Image height in pixels (at least 16).")] = 240,
+    trajectory: Annotated[SynthTrajectory, typer.Option(help="Camera motion: translation, turn in place, or hand-held shake.")] = SynthTrajectory.handheld,
+    blur: Annotated[SynthBlur, typer.Option(help="Motion blur: none, moderate (~7 px at 640 wide) or extreme (~30 px).")] = SynthBlur.extreme,
+    seed: Annotated[int, typer.Option(help="Random seed of the scene, trajectory and noise.")] = 0,
     noise: Annotated[bool, typer.Option(help="Sensor-like depth noise.")] = True,
     holes: Annotated[bool, typer.Option(help="Depth holes and dropouts.")] = True,
 ) -> None:
@@ -144,7 +141,7 @@ def synth(
     from .synth import SynthConfig, generate
 
     try:
-        config = SynthConfig(width=width, height=height, frames=frames, trajectory=trajectory, blur=blur,
+        config = SynthConfig(width=width, height=height, frames=frames, trajectory=trajectory.value, blur=blur.value,
                              seed=seed, depth_noise=noise, holes=holes)
     except ValueError as err:
         raise InputError(None, str(err), "see 'taichi-gs synth --help'") from None
@@ -184,10 +181,14 @@ def eval_(
         return
     if run_dir is None:
         raise InputError(None, "nothing to evaluate", "give RUN_DIR, or --traj and --gt-traj")
-    from .report import evaluate_run
+    from .report import evaluate_run, format_metrics
 
     metrics = evaluate_run(run_dir, gt)
-    typer.echo(jsonout.dumps(metrics, indent=2) if as_json else f"wrote {run_dir / 'metrics.json'}")
+    if as_json:
+        typer.echo(jsonout.dumps(metrics, indent=2))
+    else:
+        typer.echo(format_metrics(metrics))
+        console.print(f"wrote {run_dir / 'metrics.json'} and plots in {run_dir / 'report'}", highlight=False)
 
 
 def _intrinsics_override(fx, fy, cx, cy, depth_scale):
@@ -201,7 +202,7 @@ FyOption = Annotated[Optional[float], typer.Option("--fy", help="Focal length y 
 CxOption = Annotated[Optional[float], typer.Option("--cx", help="Principal point x (px).")]
 CyOption = Annotated[Optional[float], typer.Option("--cy", help="Principal point y (px).")]
 DepthScaleOption = Annotated[Optional[float], typer.Option("--depth-scale", help="Depth PNG units per metre (TUM: 5000).")]
-ConfigOption = Annotated[Optional[Path], typer.Option("--config", help="TOML file with [pose], [refine], [deblur] tables.")]
+ConfigOption = Annotated[Optional[Path], typer.Option("--config", help="TOML file with \\[pose], \\[refine], \\[deblur] tables.")]
 
 
 @app.command()
@@ -231,6 +232,12 @@ def pose(
 class Preset(str, Enum):
     fast = "fast"
     paper = "paper"
+
+
+class Stage(str, Enum):
+    pose = "pose"
+    refine = "refine"
+    deblur = "deblur"
 
 
 PresetOption = Annotated[Preset, typer.Option(help="fast: CPU-sized schedules; paper: the method's schedules.")]
@@ -263,7 +270,7 @@ def reconstruct(
     out: Annotated[Path, typer.Option("--out", help="Output folder (pose/, refine/, deblur/, config.toml).")],
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
-    force: Annotated[Optional[str], typer.Option(help="Rerun from this stage on: pose | refine | deblur.")] = None,
+    force: Annotated[Optional[Stage], typer.Option(help="Rerun from this stage on.")] = None,
     fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
     depth_scale: DepthScaleOption = None,
 ) -> None:
@@ -282,7 +289,7 @@ def reconstruct(
         verb = "done" if stage.ran else "already done, skipped"
         console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
 
-    run_all(sequence, out, sections, progress_bar, force=force, on_stage=report)
+    run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report)
     console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 
@@ -349,7 +356,7 @@ def deblur(
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
-    holdout: Annotated[Optional[str], typer.Option(help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
+    holdout: Annotated[Optional[int], typer.Option(parser=parse_holdout, metavar="N|none", help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
     from .io.sequence import load_sequence
@@ -359,20 +366,11 @@ def deblur(
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
     changes: dict[str, int] = {} if k is None else {"k": k}
     if holdout is not None:
-        changes["holdout_every"] = _holdout_every(holdout)
+        changes["holdout_every"] = holdout
     config = dataclasses.replace(config, **changes)
     _init_backend()
     _, summary = run_stage("deblur", sequence, out, config, progress_bar)
     console.print(f"stage 3 done: {summary}; results in {out / 'deblur'}", highlight=False)
-
-
-def _holdout_every(text: str) -> int:
-    """``--holdout`` value: 'none' -> 0, else a positive integer."""
-    if text.strip().lower() == "none":
-        return 0
-    if not text.strip().isdigit() or int(text) < 2:
-        raise InputError(None, f"--holdout {text!r} is not 'none' or an integer of at least 2", "e.g. --holdout 3 or --holdout none")
-    return int(text)
 
 
 def _init_backend() -> None:

@@ -99,6 +99,38 @@ def _dropped_frames(estimated: int, matched: int, no_gt: list[str]) -> list[dict
     return dropped
 
 
+def format_metrics(metrics: dict[str, Any]) -> str:
+    """metrics.json as aligned plain-text tables: trajectory errors per stage, image scores per
+    split (with the blurred input's as the floor), time and memory per stage, warnings."""
+
+    def number(value: Any, scale: float = 1.0, digits: int = 2) -> str:
+        return "n/a" if value is None else f"{value * scale:.{digits}f}"
+
+    lines = ["trajectory (after rigid alignment)",
+             f"  {'stage':8s} {'ATE mm':>9s} {'RPE mm':>9s} {'RPE deg':>9s} {'frames':>7s}  dropped"]
+    for stage, t in metrics["trajectory"].items():
+        dropped = sum(d["count"] for d in t.get("dropped_frames", []))
+        lines.append(f"  {stage:8s} {number(t['ate_m'], 1000):>9s} {number(t['rpe_trans_m'], 1000):>9s} "
+                     f"{number(t['rpe_rot_deg'], 1, 3):>9s} {t['frames']:>7d}  {dropped}")
+    images = metrics.get("images")
+    if images:
+        lines += ["", f"images (stage 3 renders vs {images['ground_truth']})",
+                  f"  {'split':6s} {'views':>5s} {'PSNR dB':>8s} {'SSIM':>6s} {'input PSNR':>10s} {'input SSIM':>10s} {'inv-depth RMSE':>14s}"]
+        for split in ("test", "train"):
+            if split in images:
+                s = images[split]
+                lines.append(f"  {split:6s} {s['views']:>5d} {number(s.get('psnr_db')):>8s} {number(s.get('ssim'), 1, 3):>6s} "
+                             f"{number(s.get('blurred_input_psnr_db')):>10s} {number(s.get('blurred_input_ssim'), 1, 3):>10s} "
+                             f"{number(s.get('inverse_depth_rmse'), 1, 4):>14s}")
+    if metrics.get("stages"):
+        lines += ["", f"stages (arch {metrics.get('arch', 'none')})", f"  {'stage':8s} {'seconds':>9s} {'peak MB':>9s}"]
+        for stage, s in metrics["stages"].items():
+            lines.append(f"  {stage:8s} {number(s.get('seconds'), 1, 1):>9s} {number(s.get('peak_rss_mb'), 1, 0):>9s}")
+    for warning in metrics.get("warnings", []):
+        lines.append(f"warning: {warning}")
+    return "\n".join(lines)
+
+
 def _versions() -> dict[str, str]:
     """Versions of the packages that shaped the result (read without importing them: importing
     taichi prints a banner on stdout)."""
