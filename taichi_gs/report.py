@@ -16,10 +16,11 @@ from .io.jsonout import finite_or_null, write_json
 from .io.sequence import Sequence, load_sequence, read_color, read_depth
 from .io.trajectory import read_tum
 from .pipeline import iter_stage_records, sequence_folder
-from .plots import image_grid, line_plot, trajectory_plot
+from .plots import colour_map, colour_scale, image_grid, line_plot, trajectory_plot
 
 STAGES = ("pose", "refine", "deblur")
 GRID_VIEWS = 4
+GRID_MIN_WIDTH = 240  # pixels per grid tile at least
 IMAGE_NULL_REASONS = {
     "psnr_db": "a render equals its reference exactly (infinite PSNR)",
     "blurred_input_psnr_db": "an input equals its sharp reference exactly (infinite PSNR)",
@@ -51,13 +52,13 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
         if finite.sum() >= 3:
             moved = align_trajectory(est[i][finite], gt[finite])
             aligned[stage] = moved
-            position_errors[stage] = (j[finite], np.linalg.norm(moved[:, :3, 3] - gt[finite][:, :3, 3], axis=1))
+            position_errors[stage] = (j[finite], 1000 * np.linalg.norm(moved[:, :3, 3] - gt[finite][:, :3, 3], axis=1))
     if not trajectories:
         raise InputError(run_dir, "no stage output (pose/, refine/, deblur/) with a trajectory.txt", "run 'taichi-gs reconstruct' first")
     if position_errors:
         trajectory_plot(run_dir / "report" / "trajectory_top.png", aligned, "trajectories, aligned to ground truth (top view)")
         line_plot(run_dir / "report" / "position_error.png", position_errors, "position error after alignment",
-                  "frame", "error (m)")
+                  "frame", "error (mm)")
     stages = {stage: {k: record.get(k) for k in ("seconds", "peak_rss_mb", "arch", "summary", "warnings")}
               for stage, record in iter_stage_records(run_dir)}
     metrics = {
@@ -175,20 +176,18 @@ def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
                                     ("blurred_input_ssim", ssim(blurred, sharp))):
                     scores.setdefault(name, []).append(value)
                 if group == "test" and len(grid_rows) < GRID_VIEWS:
-                    grid_rows.append([blurred, render, sharp, _depth_image(depth)])
+                    grid_rows.append([blurred, render, sharp, depth])
                     grid_titles.append(stem)
         if scores:
             result[group] = {"views": len(split.get(group, [])), **{k: float(np.mean(v)) for k, v in scores.items()}}
     if grid_rows:
+        depths = np.concatenate([row[3][row[3] > 0] for row in grid_rows])
+        lo, hi = np.percentile(depths, [2, 98]) if depths.size else (0.0, 1.0)
+        for row in grid_rows:
+            row[3] = colour_map(row[3], lo, hi)
+        width = grid_rows[0][0].shape[1]
+        scale = colour_scale(width * max(1, -(-GRID_MIN_WIDTH // width)), lo, hi, "rendered depth (m); black: none")
         image_grid(run_dir / "report" / "test_views.png", grid_rows,
-                   ["blurred input", "deblurred (ours)", "sharp ground truth", "rendered depth"], grid_titles)
+                   ["blurred input", "deblurred (ours)", "sharp ground truth", "rendered depth"], grid_titles,
+                   min_width=GRID_MIN_WIDTH, footer=scale)
     return result
-
-
-def _depth_image(depth: np.ndarray) -> np.ndarray:
-    """Depth as a grey image (near = bright), for grids."""
-    valid = depth > 0
-    if not valid.any():
-        return np.zeros_like(depth)
-    lo, hi = np.percentile(depth[valid], [2, 98])
-    return np.where(valid, 1.0 - np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1), 0.0)
