@@ -104,3 +104,12 @@ def test_extreme_blur_held_out_views_get_sharper_and_exposures_approach_truth(tm
     assert depth.dtype == np.uint16 and depth.shape == (72, 96)
     assert cv2.imread(str(stage / "grid.png")).shape[1] == 3 * 96
     assert not (stage / "checkpoint.npz").exists()
+
+
+def test_training_colour_downsampling_is_the_block_mean():
+    from taichi_gs.stages.deblur import _downsample_color
+
+    color = np.random.default_rng(0).uniform(size=(7, 9, 3)).astype(np.float32)
+    small = _downsample_color(color, 2)
+    expected = color[:6, :8].reshape(3, 2, 4, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(small, expected, atol=1e-6)

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..deblur_model import BlurScene, Rates
@@ -190,7 +191,7 @@ def _downsample_color(color: np.ndarray, scale: int) -> np.ndarray:
     if scale == 1:
         return color
     h, w = color.shape[0] // scale, color.shape[1] // scale
-    return np.ascontiguousarray(color[: h * scale, : w * scale].reshape(h, scale, w, scale, 3).mean(axis=(1, 3)))
+    return cv2.resize(color[: h * scale, : w * scale], (w, h), interpolation=cv2.INTER_AREA)
 
 
 def _area_intrinsics(K: np.ndarray, scale: int) -> np.ndarray:
