@@ -196,3 +196,7 @@ def test_eval_prints_the_table_and_warnings(tiny_sequence, tmp_path):
     assert row.split()[1:3] == [ate_mm, rpe_mm] and float(ate_mm) > 1  # the numbers themselves, in mm
     assert "12.5" in result.stdout and "321" in result.stdout
     assert "warning: pose: a test warning" in result.stdout
+
+    as_json = _cli("eval", str(run), "--json")  # a fresh process: nothing but the JSON object on stdout
+    assert as_json.returncode == 0, as_json.stderr
+    assert json.loads(as_json.stdout)["trajectory"]["pose"]["frames"] == len(sequence)
