@@ -110,7 +110,8 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a quaternion ``[w, x, y, z]`` (normalised first); (..., 4) quaternions
     give (..., 3, 3) matrices."""
     q = np.asarray(q, dtype=np.float64)
-    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    norm = np.linalg.norm(q) if q.ndim == 1 else np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q / norm, -1, 0)
     rows = [
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
