@@ -5,31 +5,30 @@ from __future__ import annotations
 import dataclasses
 import errno
 import functools
-import json
 import os
 import platform
 import sys
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
 import typer
-from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from . import __version__
+from .cli_options import CommandGroup, parse_holdout, state
 from .errors import BackendError, DivergenceError, InputError
+from .terminal import Verbosity, configure_logging, console, progress_bar
 
 app = typer.Typer(
-    help="Splat-based 3D reconstruction from RGB-D sequences with extreme motion blur.",
+    cls=CommandGroup,
+    help="Splat-based 3D reconstruction from RGB-D sequences with extreme motion blur. "
+         "The options below may also follow the command (taichi-gs pose --arch cpu ...).",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-console = Console(stderr=True)
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 4
 EXIT_INTERRUPTED = 130
@@ -41,13 +40,6 @@ class Arch(str, Enum):
     auto = "auto"
     cpu = "cpu"
     cuda = "cuda"
-
-
-class _State:
-    arch: str = "auto"
-
-
-state = _State()
 
 
 def _fail(message: str, code: int) -> None:
@@ -89,28 +81,19 @@ def _os_error_message(err: OSError) -> str:
     return f"{where}{err.strerror or err}; {fix}"
 
 
-@contextmanager
-def progress_bar(description: str, total: int) -> Iterator[Callable[..., None]]:
-    """A rich progress bar; yields ``update(done, total, **fields)``."""
-    columns = [TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[info]}")]
-    with Progress(*columns, console=console, transient=False) as progress:
-        task = progress.add_task(description, total=total, info="")
-
-        def update(done: int, total: int | None = None, **info: Any) -> None:
-            text = "  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in info.items())
-            progress.update(task, completed=done, total=total, info=text)
-
-        yield update
-
-
 @app.callback(invoke_without_command=True)
 def main(
     ctx: typer.Context,
     arch: Annotated[Arch, typer.Option(help="Taichi backend: auto picks CUDA only if a GPU is present.")] = Arch.auto,
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only warnings and errors (OUT/log.txt still gets everything).")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Also print debug messages, and a progress line per step when not on a terminal.")] = False,
 ) -> None:
     """taichi-gs: reconstruct a scene from a motion-blurred RGB-D sequence."""
+    if quiet and verbose:
+        raise typer.BadParameter("--quiet and --verbose exclude each other")
+    state.verbosity = Verbosity.QUIET if quiet else Verbosity.VERBOSE if verbose else Verbosity.NORMAL
+    configure_logging(state.verbosity)
     if version:
         typer.echo(__version__)
         raise typer.Exit()
@@ -127,9 +110,10 @@ def info() -> None:
     import cv2
     import numpy
     import open3d
-    import taichi
 
-    from .kernels import runtime
+    from .kernels import runtime  # first: it keeps Taichi's banner off stdout
+
+    import taichi
 
     backend = runtime.init(state.arch)
     rows = {
@@ -148,15 +132,27 @@ def info() -> None:
         typer.echo(f"{key:15s} {value}")
 
 
+class SynthTrajectory(str, Enum):
+    translation = "translation"
+    turn = "turn"
+    handheld = "handheld"
+
+
+class SynthBlur(str, Enum):
+    none = "none"
+    moderate = "moderate"
+    extreme = "extreme"
+
+
 @app.command()
 @handles_errors
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the sequence into (new or empty; see --overwrite).")],
-    frames: Annotated[int, typer.Option(min=2, max=MAX_SYNTH_FRAMES, help="Number of frames.")] = 60,
-    width: Annotated[int, typer.Option(min=16, max=MAX_SYNTH_SIZE, help="Image width (px).")] = 320,
-    height: Annotated[int, typer.Option(min=16, max=MAX_SYNTH_SIZE, help="Image height (px).")] = 240,
-    trajectory: Annotated[str, typer.Option(help="translation | turn | handheld")] = "handheld",
-    blur: Annotated[str, typer.Option(help="none | moderate | extreme")] = "extreme",
+    frames: Annotated[int, typer.Option(min=2, max=MAX_SYNTH_FRAMES, help="Number of frames (30 per second).")] = 60,
+    width: Annotated[int, typer.Option(min=16, max=MAX_SYNTH_SIZE, help="Image width in pixels.")] = 320,
+    height: Annotated[int, typer.Option(min=16, max=MAX_SYNTH_SIZE, help="Image height in pixels.")] = 240,
+    trajectory: Annotated[SynthTrajectory, typer.Option(help="Camera motion: translation, turn in place, or hand-held shake.")] = SynthTrajectory.handheld,
+    blur: Annotated[SynthBlur, typer.Option(help="Motion blur: none, moderate (~7 px at 640 wide) or extreme (~30 px).")] = SynthBlur.extreme,
     seed: Annotated[int, typer.Option(help="Random seed of the scene, trajectory and noise.")] = 0,
     noise: Annotated[bool, typer.Option(help="Sensor-like depth noise.")] = True,
     holes: Annotated[bool, typer.Option(help="Depth holes and dropouts.")] = True,
@@ -169,7 +165,7 @@ def synth(
     from .synth import SynthConfig, generate
 
     try:
-        config = SynthConfig(width=width, height=height, frames=frames, trajectory=trajectory, blur=blur,
+        config = SynthConfig(width=width, height=height, frames=frames, trajectory=trajectory.value, blur=blur.value,
                              seed=seed, depth_noise=noise, holes=holes)
     except ValueError as err:
         raise InputError(None, str(err), "see 'taichi-gs synth --help'") from None
@@ -212,8 +208,10 @@ def eval_(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
     """Evaluate a run folder (writes metrics.json) or a pair of TUM trajectories (--traj, --gt-traj)."""
-    from .evaluate import match_by_time, trajectory_errors
+    from .evaluate import match_by_time
+    from .io import jsonout
     from .io.trajectory import read_tum
+    from .report import trajectory_record
 
     if traj is not None or gt_traj is not None:
         if traj is None or gt_traj is None:
@@ -224,12 +222,14 @@ def eval_(
         if len(i) < 3:
             raise InputError(traj, f"only {len(i)} poses match {gt_traj.name} by timestamp (within 0.01 s)",
                              "give trajectories of the same sequence")
-        result = trajectory_errors(est[i], ref[j]).as_dict()
-        typer.echo(json.dumps(result) if as_json else "\n".join(f"{k:12s} {v}" for k, v in result.items()))
+        dropped = [] if len(i) == len(t_est) else [{"reason": f"no pose of {gt_traj.name} within 0.01 s",
+                                                   "count": len(t_est) - len(i), "frames": []}]
+        result = trajectory_record(est[i], ref[j], dropped)
+        typer.echo(jsonout.dumps(result) if as_json else "\n".join(f"{k:12s} {v}" for k, v in result.items()))
         return
     if run_dir is None:
         raise InputError(None, "nothing to evaluate", "give RUN_DIR, or --traj and --gt-traj")
-    from .report import evaluate_run
+    from .report import evaluate_run, format_metrics
 
     from .io.lock import output_lock
 
@@ -237,7 +237,11 @@ def eval_(
         raise InputError(run_dir, "run folder not found", "give the --out folder of a taichi-gs run")
     with output_lock(run_dir):
         metrics = evaluate_run(run_dir, gt)
-    typer.echo(json.dumps(metrics, indent=2) if as_json else f"wrote {run_dir / 'metrics.json'}")
+    if as_json:
+        typer.echo(jsonout.dumps(metrics, indent=2))
+    else:
+        typer.echo(format_metrics(metrics))
+        console.print(f"wrote {run_dir / 'metrics.json'} and plots in {run_dir / 'report'}", highlight=False)
 
 
 def _intrinsics_override(fx, fy, cx, cy, depth_scale):
@@ -251,7 +255,7 @@ FyOption = Annotated[Optional[float], typer.Option("--fy", help="Focal length y 
 CxOption = Annotated[Optional[float], typer.Option("--cx", help="Principal point x (px).")]
 CyOption = Annotated[Optional[float], typer.Option("--cy", help="Principal point y (px).")]
 DepthScaleOption = Annotated[Optional[float], typer.Option("--depth-scale", help="Depth PNG units per metre (TUM: 5000).")]
-ConfigOption = Annotated[Optional[Path], typer.Option("--config", help="TOML file with [pose], [refine], [deblur] tables.")]
+ConfigOption = Annotated[Optional[Path], typer.Option("--config", help="TOML file with \\[pose], \\[refine], \\[deblur] tables.")]
 TrustDepthOption = Annotated[bool, typer.Option(
     "--trust-depth-scale", help="Accept a median depth outside 0.25-6 m (the indoor check of the depth scale).")]
 TimeToleranceOption = Annotated[Optional[float], typer.Option(
@@ -293,6 +297,12 @@ class Preset(str, Enum):
     paper = "paper"
 
 
+class Stage(str, Enum):
+    pose = "pose"
+    refine = "refine"
+    deblur = "deblur"
+
+
 PresetOption = Annotated[Preset, typer.Option(help="fast: CPU-sized schedules; paper: the method's schedules.")]
 
 
@@ -328,7 +338,7 @@ def reconstruct(
     out: Annotated[Path, typer.Option("--out", help="Output folder (pose/, refine/, deblur/, config.toml).")],
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
-    force: Annotated[Optional[str], typer.Option(help="Rerun from this stage on: pose | refine | deblur.")] = None,
+    force: Annotated[Optional[Stage], typer.Option(help="Rerun from this stage on.")] = None,
     fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
     depth_scale: DepthScaleOption = None,
     trust_depth_scale: TrustDepthOption = False,
@@ -337,12 +347,9 @@ def reconstruct(
     """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
     from .io.lock import output_lock
     from .io.sequence import load_sequence
-    from .pipeline import STAGES
     from .pipeline import reconstruct as run_all
     from .pipeline import resolve_sections
 
-    if force is not None and force not in STAGES:
-        raise InputError(None, f"unknown stage {force!r} for --force", f"use one of {', '.join(STAGES)}")
     _check_output_folder(folder, out)
     sections = resolve_sections(preset.value, config_file)
     sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale)
@@ -354,7 +361,7 @@ def reconstruct(
         console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
 
     with output_lock(out):
-        run_all(sequence, out, sections, progress_bar, force=force, on_stage=report)
+        run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report)
     console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 
@@ -388,17 +395,18 @@ class ExportFormat(str, Enum):
     nerfstudio = "nerfstudio"
     colmap = "colmap"
     ply = "ply"
+    gs3d = "3dgs"
 
 
 @app.command()
 @handles_errors
 def export(
     out: Annotated[Path, typer.Argument(help="Finished run folder.")],
-    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio | colmap | ply")] = ExportFormat.nerfstudio,
+    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio: transforms.json (depth in mm); colmap: text model; ply: splats (SH degree 3) and points; 3dgs: reference 3DGS model folder.")] = ExportFormat.nerfstudio,
     dest: Annotated[Optional[Path], typer.Option(help="Target folder (default OUT/export/FORMAT).")] = None,
 ) -> None:
-    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, or PLYs."""
-    from .export import export_colmap, export_nerfstudio, export_ply
+    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, PLYs, or a 3DGS model folder."""
+    from .export import export_3dgs, export_colmap, export_nerfstudio, export_ply
     from .io.lock import output_lock
     from .pipeline import STAGES, open_run_sequence
 
@@ -411,7 +419,8 @@ def export(
         if format is ExportFormat.ply:
             written = export_ply(out, dest)
         else:
-            exporter = export_nerfstudio if format is ExportFormat.nerfstudio else export_colmap
+            exporter = {ExportFormat.nerfstudio: export_nerfstudio, ExportFormat.colmap: export_colmap,
+                        ExportFormat.gs3d: export_3dgs}[format]
             written = exporter(out, sequence, dest)
     console.print(f"exported {format.value} to {written}")
 
@@ -423,7 +432,7 @@ def deblur(
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
-    holdout: Annotated[Optional[str], typer.Option(help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
+    holdout: Annotated[Optional[int], typer.Option(parser=parse_holdout, metavar="N|none", help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
     from .io.lock import output_lock
@@ -433,7 +442,7 @@ def deblur(
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
     changes: dict[str, int] = {} if k is None else {"k": k}
     if holdout is not None:
-        changes["holdout_every"] = _holdout_every(holdout)
+        changes["holdout_every"] = holdout
     config = dataclasses.replace(config, **changes)
     validate_sections({"deblur": config})
     sequence = open_run_sequence(out)
@@ -441,15 +450,6 @@ def deblur(
     with output_lock(out):
         _, summary = run_stage("deblur", sequence, out, config, progress_bar)
     console.print(f"stage 3 done: {summary}; results in {out / 'deblur'}", highlight=False)
-
-
-def _holdout_every(text: str) -> int:
-    """``--holdout`` value: 'none' -> 0, else a positive integer."""
-    if text.strip().lower() == "none":
-        return 0
-    if not text.strip().isdigit() or int(text) < 2:
-        raise InputError(None, f"--holdout {text!r} is not 'none' or an integer of at least 2", "e.g. --holdout 3 or --holdout none")
-    return int(text)
 
 
 def _init_backend() -> None:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import raster_intrinsics
+from .geometry import quat_to_rotmat, raster_intrinsics
 from .render import Adam, Camera, DeviceGaussians, Rasterizer, blur, exposure_pose_gradients, losses, to_device, virtual_pose
 from .splats import Splats, logit
 
@@ -41,17 +41,6 @@ class BlurStep:
 def exposure_taus(k: int) -> np.ndarray:
     """Exposure fractions of the k virtual views: linspace(0, 1, k), or the middle alone for k = 1."""
     return np.linspace(0.0, 1.0, k) if k > 1 else np.array([0.5])
-
-
-def quat_to_rotmats(quats: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) rotation matrices of (N, 4) quaternions w x y z (normalised here)."""
-    q = quats / np.maximum(np.linalg.norm(quats, axis=1, keepdims=True), 1e-12)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1),
-    ], axis=1)
 
 
 class BlurScene:
@@ -175,7 +164,7 @@ class BlurScene:
         new = {name: np.concatenate([a[name][clone], a[name][split]]) for name in TRAINED}
         if len(split):
             scales = np.exp(a["log_scales"][split])
-            offsets = np.einsum("nij,nj->ni", quat_to_rotmats(a["quats"][split]), rng.normal(size=scales.shape) * scales)
+            offsets = np.einsum("nij,nj->ni", quat_to_rotmat(a["quats"][split]), rng.normal(size=scales.shape) * scales)
             new["means"][len(clone):] += offsets
             a["means"][split] -= offsets
             new["log_scales"][len(clone):] -= np.log(1.6)

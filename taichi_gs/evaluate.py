@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from skimage.metrics import structural_similarity
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from .geometry import invert
 
@@ -112,9 +112,11 @@ def _finite_pairs(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def psnr(image: np.ndarray, reference: np.ndarray) -> float:
-    """Peak signal-to-noise ratio (dB) of images in [0, 1]."""
-    mse = float(np.mean((np.clip(image, 0, 1).astype(np.float64) - reference.astype(np.float64)) ** 2))
-    return float("inf") if mse == 0 else float(-10.0 * np.log10(mse))
+    """Peak signal-to-noise ratio (dB) of images in [0, 1] (inf for identical images)."""
+    image, reference = np.clip(image, 0, 1).astype(np.float64), reference.astype(np.float64)
+    if np.array_equal(image, reference):
+        return float("inf")
+    return float(peak_signal_noise_ratio(reference, image, data_range=1.0))
 
 
 def ssim(image: np.ndarray, reference: np.ndarray) -> float:

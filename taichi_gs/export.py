@@ -1,5 +1,5 @@
 """Hand a finished run to other tools: nerfstudio ``transforms.json``, a COLMAP text model, PLYs,
-or sharp renders along a camera path.
+a reference-3DGS model folder, or sharp renders along a camera path.
 
 The newest finished stage provides the poses (deblur, else refine, else pose); images are the
 deblurred sharp renders when stage 3 ran, else the input frames. Everything is written under a
@@ -8,7 +8,6 @@ destination folder; the run folder and the input are only read.
 
 from __future__ import annotations
 
-import json
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -20,13 +19,16 @@ from .camera_paths import orbit_path, trajectory_path
 from .errors import InputError
 from .geometry import intrinsics_matrix, invert, rotmat_to_quat
 from .io.atomic import atomic_path, write_text
-from .io.images import to_uint8, write_png
-from .io.ply import read_point_cloud, read_splats
+from .io import jsonout
+from .io.images import encode_depth, to_uint8, write_png
+from .io.ply import read_point_cloud, read_splats, write_splats
 from .io.sequence import Sequence
 from .io.trajectory import read_tum
-from .pipeline import STAGES
+from .pipeline import STAGES, read_done
 
-FORMATS = ("nerfstudio", "colmap", "ply")
+FORMATS = ("nerfstudio", "colmap", "ply", "3dgs")
+DEPTH_PNG_UNITS_PER_METRE = 1000.0  # exported depth: uint16 millimetres
+REFERENCE_SH_DEGREE = 3  # what the reference 3DGS loader asserts
 # OpenCV camera axes (x right, y down, z forward) -> OpenGL/nerfstudio axes (x right, y up, z back).
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -51,12 +53,11 @@ def final_poses(run_dir: Path, sequence: Sequence) -> np.ndarray:
     return poses
 
 
-def _frame_images(run_dir: Path, sequence: Sequence, dest: Path) -> list[tuple[str, str | None]]:
-    """Copy the frames' images (deblurred if available) and depth maps into dest/images, dest/depth;
-    return their paths relative to dest."""
+def _frame_images(run_dir: Path, sequence: Sequence, dest: Path, depth: bool = True) -> list[tuple[str, str | None]]:
+    """Copy the frames' images (deblurred if available) into dest/images and, with ``depth``, write
+    their depth maps as 16-bit PNGs in millimetres into dest/depth; return paths relative to dest."""
     sharp_dir = run_dir / "deblur" / "renders" / "sharp"
     (dest / "images").mkdir(parents=True, exist_ok=True)
-    (dest / "depth").mkdir(parents=True, exist_ok=True)
     names: list[tuple[str, str | None]] = []
     for i, stem in enumerate(sequence.names):
         source = sharp_dir / f"{stem}.png"
@@ -64,11 +65,11 @@ def _frame_images(run_dir: Path, sequence: Sequence, dest: Path) -> list[tuple[s
             source = sequence.rgb_paths[i]
         image = f"images/{stem}{source.suffix}"
         _copy(source, dest / image)
-        depth_source = sequence.depth_paths[i]
-        depth = f"depth/{stem}{depth_source.suffix}" if depth_source.suffix == ".png" else None
-        if depth is not None:
-            _copy(depth_source, dest / depth)
-        names.append((image, depth))
+        depth_name = None
+        if depth:
+            depth_name = f"depth/{stem}.png"
+            write_png(dest / depth_name, encode_depth(sequence.depth(i), DEPTH_PNG_UNITS_PER_METRE))
+        names.append((image, depth_name))
     return names
 
 
@@ -77,21 +78,29 @@ def _copy(source: Path, target: Path) -> None:
         shutil.copyfile(source, tmp)
 
 
+def centre_principal_point(cx: float, cy: float) -> tuple[float, float]:
+    """OpenCV's principal point (pixel u samples image coordinate u) in the convention of COLMAP,
+    nerfstudio and 3DGS, whose pixel u covers [u, u + 1) with its centre at u + 0.5."""
+    return cx + 0.5, cy + 0.5
+
+
 def export_nerfstudio(run_dir: Path, sequence: Sequence, dest: Path) -> Path:
-    """nerfstudio ``transforms.json`` (OpenGL camera-to-world), images, depth and points.ply."""
+    """nerfstudio ``transforms.json`` (OpenGL camera-to-world), images, depth and points.ply.
+
+    Depth PNGs are uint16 millimetres, which nerfstudio's dataparser reads right with its default
+    ``--depth-unit-scale-factor 1e-3`` (it never reads that factor from transforms.json)."""
     poses = final_poses(run_dir, sequence)
     intr = sequence.intrinsics
+    cx, cy = centre_principal_point(intr.cx, intr.cy)
     frames = []
     for (image, depth), pose in zip(_frame_images(run_dir, sequence, dest), poses):
-        frame = {"file_path": image, "transform_matrix": (pose @ OPENCV_TO_OPENGL).tolist()}
-        if depth is not None:
-            frame["depth_file_path"] = depth
-        frames.append(frame)
+        frames.append({"file_path": image, "transform_matrix": (pose @ OPENCV_TO_OPENGL).tolist(),
+                       "depth_file_path": depth})
     transforms = {
         "camera_model": "OPENCV", "w": intr.width, "h": intr.height,
-        "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
+        "fl_x": intr.fx, "fl_y": intr.fy, "cx": cx, "cy": cy,
         "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
-        "depth_unit_scale_factor": 1.0 / intr.depth_scale,
+        "depth_unit_scale_factor": 1.0 / DEPTH_PNG_UNITS_PER_METRE,  # informative: nerfstudio's default
         "frames": frames,
     }
     cloud = _points_path(run_dir)
@@ -99,7 +108,7 @@ def export_nerfstudio(run_dir: Path, sequence: Sequence, dest: Path) -> Path:
         _copy(cloud, dest / "points.ply")
         transforms["ply_file_path"] = "points.ply"
     path = dest / "transforms.json"
-    write_text(path, json.dumps(transforms, indent=2) + "\n")
+    write_text(path, jsonout.dumps(transforms, indent=2) + "\n")
     return path
 
 
@@ -107,11 +116,12 @@ def export_colmap(run_dir: Path, sequence: Sequence, dest: Path, max_points: int
     """COLMAP text model (``sparse/0/{cameras,images,points3D}.txt``, PINHOLE camera) and images/."""
     poses = final_poses(run_dir, sequence)
     intr = sequence.intrinsics
-    names = _frame_images(run_dir, sequence, dest)
+    names = _frame_images(run_dir, sequence, dest, depth=False)
     model = dest / "sparse" / "0"
+    cx, cy = centre_principal_point(intr.cx, intr.cy)
     write_text(model / "cameras.txt",
                "# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n"
-               f"1 PINHOLE {intr.width} {intr.height} {intr.fx:.12g} {intr.fy:.12g} {intr.cx:.12g} {intr.cy:.12g}\n")
+               f"1 PINHOLE {intr.width} {intr.height} {intr.fx:.12g} {intr.fy:.12g} {cx:.12g} {cy:.12g}\n")
     lines = ["# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME", "# (world-to-camera; second line: no 2D points)"]
     for i, ((image, _), pose) in enumerate(zip(names, poses), start=1):
         world_to_camera = invert(pose)
@@ -133,18 +143,46 @@ def export_colmap(run_dir: Path, sequence: Sequence, dest: Path, max_points: int
 
 
 def export_ply(run_dir: Path, dest: Path) -> Path:
-    """Copy the newest splats.ply (3DGS layout, for splat viewers) and points.ply into ``dest``."""
-    copied = False
-    for name in ("splats.ply", "points.ply"):
-        for stage in reversed(STAGES):
-            source = run_dir / stage / name
-            if source.is_file():
-                _copy(source, dest / name)
-                copied = True
-                break
-    if not copied:
+    """The newest splats.ply (3DGS layout, SH padded to degree 3 so that the reference loader and
+    SIBR viewer open it; SuperSplat and gsplat read it too) and points.ply, into ``dest``."""
+    splats = _splats_path(run_dir)
+    cloud = _points_path(run_dir)
+    if splats is None and cloud is None:
         raise InputError(run_dir, "no splats.ply or points.ply in any stage folder", "run 'taichi-gs reconstruct' first")
+    if splats is not None:
+        write_splats(dest / "splats.ply", read_splats(splats), sh_degree=REFERENCE_SH_DEGREE)
+    if cloud is not None:
+        _copy(cloud, dest / "points.ply")
     return dest
+
+
+def export_3dgs(run_dir: Path, sequence: Sequence, dest: Path) -> Path:
+    """A model folder as the reference 3DGS code writes it, for its SIBR viewer and tools:
+    ``point_cloud/iteration_N/point_cloud.ply`` (SH degree 3), ``cameras.json``, ``cfg_args``,
+    with the COLMAP dataset it names as source in ``dest/source``."""
+    splats = _splats_path(run_dir)
+    if splats is None:
+        raise InputError(run_dir, "no splats.ply in deblur/ or refine/", "run 'taichi-gs reconstruct' first")
+    stage = splats.parent.name
+    iteration = int(((read_done(run_dir, stage) or {}).get("config") or {}).get("iterations", 0)) or 1
+    poses = final_poses(run_dir, sequence)
+    source = dest / "source"
+    export_colmap(run_dir, sequence, source)
+    write_splats(dest / "point_cloud" / f"iteration_{iteration}" / "point_cloud.ply", read_splats(splats),
+                 sh_degree=REFERENCE_SH_DEGREE)
+    intr = sequence.intrinsics
+    cameras = [{"id": i, "img_name": name, "width": intr.width, "height": intr.height,
+                "position": pose[:3, 3].tolist(), "rotation": pose[:3, :3].tolist(), "fy": intr.fy, "fx": intr.fx}
+               for i, (name, pose) in enumerate(zip(sequence.names, poses))]
+    write_text(dest / "cameras.json", jsonout.dumps(cameras))
+    write_text(dest / "cfg_args", f"Namespace(sh_degree={REFERENCE_SH_DEGREE}, source_path={str(source.resolve())!r}, "
+                                  f"model_path={str(dest.resolve())!r}, images='images', resolution=-1, "
+                                  "white_background=False, data_device='cuda', eval=False)")
+    return dest
+
+
+def _splats_path(run_dir: Path) -> Path | None:
+    return next((run_dir / s / "splats.ply" for s in ("deblur", "refine") if (run_dir / s / "splats.ply").is_file()), None)
 
 
 def _points_path(run_dir: Path) -> Path | None:
@@ -161,7 +199,7 @@ def render_path(run_dir: Path, sequence: Sequence, path: str, count: int, scale:
     RUN_DIR/render/PATH/NNNNNN.png and RUN_DIR/render/PATH.gif; returns the PNG folder."""
     from .render import render_views
 
-    splat_path = next((run_dir / s / "splats.ply" for s in ("deblur", "refine") if (run_dir / s / "splats.ply").is_file()), None)
+    splat_path = _splats_path(run_dir)
     if splat_path is None:
         raise InputError(run_dir, "no splats.ply in deblur/ or refine/", "run 'taichi-gs reconstruct' first")
     splats = read_splats(splat_path)

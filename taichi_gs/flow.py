@@ -21,7 +21,6 @@ from .errors import InputError
 from .geometry import backproject, project, transform
 from .io.atomic import atomic_path
 
-FLO_MAGIC = 202021.25  # Middlebury .flo tag ("PIEH" as a float32)
 FLOW_SUFFIXES = (".flo", ".npy")
 BACKWARD_SUFFIX = "_backward"
 DIS_PRESETS = {
@@ -148,11 +147,8 @@ def write_flow(path: str | Path, flow: np.ndarray) -> None:
     path = Path(path)
     with atomic_path(path) as tmp:
         if path.suffix == ".flo":
-            h, w = flow.shape[:2]
-            with open(tmp, "wb") as f:
-                np.array([FLO_MAGIC], "<f4").tofile(f)
-                np.array([w, h], "<i4").tofile(f)
-                flow.astype("<f4").tofile(f)
+            if not cv2.writeOpticalFlow(str(tmp), np.ascontiguousarray(flow, dtype=np.float32)):
+                raise OSError(f"could not write {path}")
         elif path.suffix == ".npy":
             with open(tmp, "wb") as f:
                 np.save(f, flow.astype(np.float32))
@@ -161,14 +157,12 @@ def write_flow(path: str | Path, flow: np.ndarray) -> None:
 
 
 def read_flo(path: Path) -> np.ndarray:
-    """Middlebury ``.flo``: float32 tag 202021.25, int32 width, int32 height, then u, v interleaved."""
-    data = path.read_bytes()
-    if len(data) < 12 or np.frombuffer(data[:4], "<f4")[0] != FLO_MAGIC:
-        raise InputError(path, "not a Middlebury .flo file (bad tag)", "write flows with the standard .flo writer or as .npy")
-    w, h = np.frombuffer(data[4:12], "<i4")
-    if len(data) != 12 + 8 * int(w) * int(h):
-        raise InputError(path, f"file size does not match {w}x{h}", "rewrite the file; it may be truncated")
-    return np.frombuffer(data[12:], "<f4").reshape(int(h), int(w), 2).astype(np.float32)
+    """Middlebury ``.flo`` (float32 tag 202021.25, int32 width, int32 height, then u, v interleaved)."""
+    flow = cv2.readOpticalFlow(str(path))
+    if flow is None or flow.size == 0:
+        raise InputError(path, "not a readable Middlebury .flo file (bad tag, or truncated)",
+                         "write flows with a standard .flo writer (cv2.writeOpticalFlow) or as .npy")
+    return flow.astype(np.float32)
 
 
 def warp_by_flow(image: np.ndarray, flow: np.ndarray) -> np.ndarray:

@@ -107,15 +107,17 @@ def interpolate(T_a: np.ndarray, T_b: np.ndarray, tau: float) -> np.ndarray:
 
 
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a quaternion ``[w, x, y, z]`` (normalised first)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """Rotation matrix of a quaternion ``[w, x, y, z]`` (normalised first); (..., 4) quaternions
+    give (..., 3, 3) matrices."""
+    q = np.asarray(q, dtype=np.float64)
+    norm = np.linalg.norm(q) if q.ndim == 1 else np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q / norm, -1, 0)
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:

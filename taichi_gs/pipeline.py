@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import resource
 import shutil
 import sys
@@ -26,9 +27,11 @@ from typing import Any
 from .config import read_config, write_config
 from .errors import InputError
 from .io.atomic import write_text
+from .io import jsonout
 from .io.sequence import Sequence
 from .validation import validate_sections
 
+log = logging.getLogger("taichi_gs")
 STAGES = ("pose", "refine", "deblur")
 DONE_FILE = "done.json"
 STAGE_OUTPUTS = {
@@ -59,7 +62,7 @@ def write_run_info(run_dir: Path, sequence: Sequence) -> None:
     """Record which sequence a run folder was made from, and how it was loaded, so later commands
     (refine, deblur, eval, render, export) reopen exactly the same sequence."""
     record = {"sequence": str(Path(sequence.root).resolve()), "load_options": sequence.load_options}
-    write_text(run_dir / RUN_INFO, json.dumps(record, indent=2) + "\n")
+    write_text(run_dir / RUN_INFO, jsonout.dumps(record, indent=2) + "\n")
 
 
 def _read_run_info(run_dir: Path) -> dict[str, Any]:
@@ -144,7 +147,7 @@ def peak_rss_mb() -> float:
 
 
 def _config_record(section: Any) -> dict[str, Any]:
-    return json.loads(json.dumps(dataclasses.asdict(section), default=list))
+    return json.loads(jsonout.dumps(dataclasses.asdict(section)))
 
 
 def stage_inputs(stage: str, sequence: Sequence, out: Path, section: Any, poses: Path | None = None,
@@ -183,10 +186,10 @@ def read_done(out: Path, stage: str) -> dict[str, Any] | None:
 
 
 def _mark_done(out: Path, stage: str, section: Any, fingerprint: dict[str, Any], seconds: float, arch: str,
-               summary: str) -> None:
+               summary: str, warnings: list[str]) -> None:
     record = {"config": _config_record(section), "fingerprint": fingerprint["sha256"], "seconds": seconds,
-              "peak_rss_mb": peak_rss_mb(), "arch": arch, "summary": summary}
-    write_text(out / stage / DONE_FILE, json.dumps(record, indent=2) + "\n")
+              "peak_rss_mb": peak_rss_mb(), "arch": arch, "summary": summary, "warnings": warnings}
+    write_text(out / stage / DONE_FILE, jsonout.dumps(record, indent=2) + "\n")
 
 
 def _prepare_stage_dir(out: Path, stage: str, fingerprint: dict[str, Any]) -> None:
@@ -205,7 +208,7 @@ def _prepare_stage_dir(out: Path, stage: str, fingerprint: dict[str, Any]) -> No
     later = STAGES[STAGES.index(stage) + 1:]
     if later:
         clear_stages(out, later[0])
-    write_text(marker, json.dumps(fingerprint, indent=2, default=str) + "\n")
+    write_text(marker, jsonout.dumps(fingerprint, indent=2) + "\n")
 
 
 def clear_stages(out: Path, first: str) -> None:
@@ -230,14 +233,14 @@ def run_stage(stage: str, sequence: Sequence, out: Path, section: Any, progress:
     start = time.perf_counter()
     fingerprint = stage_inputs(stage, sequence, out, section, poses, points)
     _prepare_stage_dir(out, stage, fingerprint)
-    section, summary = _execute(stage, sequence, out, section, progress, poses, points)
-    _mark_done(out, stage, section, fingerprint, time.perf_counter() - start, _arch(), summary)
+    section, summary, warnings = _execute(stage, sequence, out, section, progress, poses, points)
+    _mark_done(out, stage, section, fingerprint, time.perf_counter() - start, _arch(), summary, warnings)
     return section, summary
 
 
 def _execute(stage: str, sequence: Sequence, out: Path, section: Any, progress: ProgressFactory,
-             poses: Path | None, points: Path | None) -> tuple[Any, str]:
-    """The stage's own work: (its config as run, a one-line summary)."""
+             poses: Path | None, points: Path | None) -> tuple[Any, str, list[str]]:
+    """The stage's own work: (its config as run, a one-line summary, its warnings)."""
     if stage == "pose":
         from .stages.pose import run_pose
 
@@ -264,7 +267,10 @@ def _execute(stage: str, sequence: Sequence, out: Path, section: Any, progress: 
         summary = result.summary()
     else:
         raise ValueError(f"unknown stage {stage!r}")
-    return section, summary
+    warnings = [str(w) for w in getattr(result, "warnings", [])]
+    for warning in warnings:
+        log.warning("%s: %s", stage, warning)
+    return section, summary, warnings
 
 
 def reconstruct(

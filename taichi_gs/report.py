@@ -12,14 +12,20 @@ import numpy as np
 from . import __version__
 from .errors import InputError
 from .evaluate import align_trajectory, inverse_depth_rmse, match_by_time, psnr, ssim, trajectory_errors
-from .io.atomic import write_text
-from .io.sequence import Sequence, load_sequence, read_color, read_depth
+from .io.jsonout import finite_or_null, write_json
+from .io.sequence import Sequence, read_color, read_depth
 from .io.trajectory import read_tum
 from .pipeline import iter_stage_records, open_run_sequence
-from .plots import image_grid, line_plot, trajectory_plot
+from .plots import colour_map, colour_scale, image_grid, line_plot, trajectory_plot
 
 STAGES = ("pose", "refine", "deblur")
 GRID_VIEWS = 4
+GRID_MIN_WIDTH = 240  # pixels per grid tile at least
+IMAGE_NULL_REASONS = {
+    "psnr_db": "a render equals its reference exactly (infinite PSNR)",
+    "blurred_input_psnr_db": "an input equals its sharp reference exactly (infinite PSNR)",
+    "inverse_depth_rmse": "no pixel where both the rendered and the input depth are valid",
+}
 
 
 def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
@@ -40,19 +46,20 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
         t_est, est = read_tum(path)
         i, j = match_by_time(t_est, sequence.timestamps)
         gt = sequence.gt_poses[j]
-        trajectories[stage] = trajectory_errors(est[i], gt).as_dict()
         finite = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
+        dropped = _dropped_frames(len(t_est), len(i), [sequence.names[k] for k in j[~finite]])
+        trajectories[stage] = trajectory_record(est[i], gt, dropped)
         if finite.sum() >= 3:
             moved = align_trajectory(est[i][finite], gt[finite])
             aligned[stage] = moved
-            position_errors[stage] = (j[finite], np.linalg.norm(moved[:, :3, 3] - gt[finite][:, :3, 3], axis=1))
+            position_errors[stage] = (j[finite], 1000 * np.linalg.norm(moved[:, :3, 3] - gt[finite][:, :3, 3], axis=1))
     if not trajectories:
         raise InputError(run_dir, "no stage output (pose/, refine/, deblur/) with a trajectory.txt", "run 'taichi-gs reconstruct' first")
     if position_errors:
         trajectory_plot(run_dir / "report" / "trajectory_top.png", aligned, "trajectories, aligned to ground truth (top view)")
         line_plot(run_dir / "report" / "position_error.png", position_errors, "position error after alignment",
-                  "frame", "error (m)")
-    stages = {stage: {k: record.get(k) for k in ("seconds", "peak_rss_mb", "arch", "summary")}
+                  "frame", "error (mm)")
+    stages = {stage: {k: record.get(k) for k in ("seconds", "peak_rss_mb", "arch", "summary", "warnings")}
               for stage, record in iter_stage_records(run_dir)}
     metrics = {
         "trajectory": trajectories,
@@ -62,8 +69,67 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
         "versions": _versions(),
         "sequence": str(sequence.root),
     }
-    write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    metrics["warnings"] = [f"{stage}: {w}" for stage, record in iter_stage_records(run_dir) for w in record.get("warnings", [])]
+    metrics = finite_or_null(metrics, IMAGE_NULL_REASONS)
+    write_json(run_dir / "metrics.json", metrics)
     return metrics
+
+
+def trajectory_record(est: np.ndarray, ref: np.ndarray, dropped: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """ATE/RPE of matched poses as a JSON-ready dict: a metric that cannot be computed is None
+    with a ``<name>_null_reason``; ``dropped`` lists the frames left out and why."""
+    errors = trajectory_errors(est, ref).as_dict()
+    few = f"only {errors['frames']} frame(s) with both an estimate and ground truth"
+    reasons = {"ate_m": f"{few}; ATE needs at least 3",
+               "rpe_trans_m": f"{few}; RPE needs two consecutive such frames",
+               "rpe_rot_deg": f"{few}; RPE needs two consecutive such frames"}
+    record = finite_or_null(errors, reasons)
+    record["dropped_frames"] = dropped or []
+    return record
+
+
+def _dropped_frames(estimated: int, matched: int, no_gt: list[str]) -> list[dict[str, Any]]:
+    """The frames left out of the trajectory metrics, grouped by reason (first 10 names each)."""
+    dropped = []
+    if estimated > matched:
+        dropped.append({"reason": "estimated pose matches no input frame by timestamp (within 0.01 s)",
+                        "count": estimated - matched, "frames": []})
+    if no_gt:
+        dropped.append({"reason": "no ground truth at this frame's time (groundtruth.txt does not cover it)",
+                        "count": len(no_gt), "frames": no_gt[:10]})
+    return dropped
+
+
+def format_metrics(metrics: dict[str, Any]) -> str:
+    """metrics.json as aligned plain-text tables: trajectory errors per stage, image scores per
+    split (with the blurred input's as the floor), time and memory per stage, warnings."""
+
+    def number(value: Any, scale: float = 1.0, digits: int = 2) -> str:
+        return "n/a" if value is None else f"{value * scale:.{digits}f}"
+
+    lines = ["trajectory (after rigid alignment)",
+             f"  {'stage':8s} {'ATE mm':>9s} {'RPE mm':>9s} {'RPE deg':>9s} {'frames':>7s}  dropped"]
+    for stage, t in metrics["trajectory"].items():
+        dropped = sum(d["count"] for d in t.get("dropped_frames", []))
+        lines.append(f"  {stage:8s} {number(t['ate_m'], 1000):>9s} {number(t['rpe_trans_m'], 1000):>9s} "
+                     f"{number(t['rpe_rot_deg'], 1, 3):>9s} {t['frames']:>7d}  {dropped}")
+    images = metrics.get("images")
+    if images:
+        lines += ["", f"images (stage 3 renders vs {images['ground_truth']})",
+                  f"  {'split':6s} {'views':>5s} {'PSNR dB':>8s} {'SSIM':>6s} {'input PSNR':>10s} {'input SSIM':>10s} {'inv-depth RMSE':>14s}"]
+        for split in ("test", "train"):
+            if split in images:
+                s = images[split]
+                lines.append(f"  {split:6s} {s['views']:>5d} {number(s.get('psnr_db')):>8s} {number(s.get('ssim'), 1, 3):>6s} "
+                             f"{number(s.get('blurred_input_psnr_db')):>10s} {number(s.get('blurred_input_ssim'), 1, 3):>10s} "
+                             f"{number(s.get('inverse_depth_rmse'), 1, 4):>14s}")
+    if metrics.get("stages"):
+        lines += ["", f"stages (arch {metrics.get('arch', 'none')})", f"  {'stage':8s} {'seconds':>9s} {'peak MB':>9s}"]
+        for stage, s in metrics["stages"].items():
+            lines.append(f"  {stage:8s} {number(s.get('seconds'), 1, 1):>9s} {number(s.get('peak_rss_mb'), 1, 0):>9s}")
+    for warning in metrics.get("warnings", []):
+        lines.append(f"warning: {warning}")
+    return "\n".join(lines)
 
 
 def _versions() -> dict[str, str]:
@@ -110,20 +176,18 @@ def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
                                     ("blurred_input_ssim", ssim(blurred, sharp))):
                     scores.setdefault(name, []).append(value)
                 if group == "test" and len(grid_rows) < GRID_VIEWS:
-                    grid_rows.append([blurred, render, sharp, _depth_image(depth)])
+                    grid_rows.append([blurred, render, sharp, depth])
                     grid_titles.append(stem)
         if scores:
             result[group] = {"views": len(split.get(group, [])), **{k: float(np.mean(v)) for k, v in scores.items()}}
     if grid_rows:
+        depths = np.concatenate([row[3][row[3] > 0] for row in grid_rows])
+        lo, hi = np.percentile(depths, [2, 98]) if depths.size else (0.0, 1.0)
+        for row in grid_rows:
+            row[3] = colour_map(row[3], lo, hi)
+        width = grid_rows[0][0].shape[1]
+        scale = colour_scale(width * max(1, -(-GRID_MIN_WIDTH // width)), lo, hi, "rendered depth (m); black: none")
         image_grid(run_dir / "report" / "test_views.png", grid_rows,
-                   ["blurred input", "deblurred (ours)", "sharp ground truth", "rendered depth"], grid_titles)
+                   ["blurred input", "deblurred (ours)", "sharp ground truth", "rendered depth"], grid_titles,
+                   min_width=GRID_MIN_WIDTH, footer=scale)
     return result
-
-
-def _depth_image(depth: np.ndarray) -> np.ndarray:
-    """Depth as a grey image (near = bright), for grids."""
-    valid = depth > 0
-    if not valid.any():
-        return np.zeros_like(depth)
-    lo, hi = np.percentile(depth[valid], [2, 98])
-    return np.where(valid, 1.0 - np.clip((depth - lo) / max(hi - lo, 1e-6), 0, 1), 0.0)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,6 +35,7 @@ from .geometry import (
     so3_exp, transform,
 )
 from .io.atomic import write_text
+from .io import jsonout
 from .io.images import encode_depth, to_uint8, write_png
 from .io.trajectory import format_tum, write_tum
 
@@ -497,7 +497,7 @@ def _write_tables(
     K = camera_matrix(config)
     intrinsics = {"width": config.width, "height": config.height, "fx": K[0, 0], "fy": K[1, 1],
                   "cx": K[0, 2], "cy": K[1, 2], "depth_scale": config.depth_scale}
-    write_text(out_dir / "intrinsics.json", json.dumps(intrinsics, indent=2) + "\n")
+    write_text(out_dir / "intrinsics.json", jsonout.dumps(intrinsics, indent=2) + "\n")
     frames = ["# timestamp rgb depth"]
     frames += [f"{t:.6f} rgb/{i:06d}.png depth/{i:06d}.png" for i, t in enumerate(timestamps)]
     write_text(out_dir / "frames.txt", "\n".join(frames) + "\n")
@@ -526,7 +526,7 @@ def _write_summary(out_dir: Path, config: SynthConfig, fraction: float, frames: 
             "max_range_m": MAX_RANGE_M if config.holes else None,
         },
     }
-    write_text(out_dir / "synth.json", json.dumps(summary, indent=2) + "\n")
+    write_text(out_dir / "synth.json", jsonout.dumps(summary, indent=2) + "\n")
 
 
 def generate(config: SynthConfig, out_dir: Path, progress: Callable[[int, int], None] | None = None) -> Path:

@@ -104,3 +104,26 @@ def test_extreme_blur_held_out_views_get_sharper_and_exposures_approach_truth(tm
     assert depth.dtype == np.uint16 and depth.shape == (72, 96)
     assert cv2.imread(str(stage / "grid.png")).shape[1] == 3 * 96
     assert not (stage / "checkpoint.npz").exists()
+
+
+def test_training_colour_downsampling_is_the_block_mean():
+    from taichi_gs.stages.deblur import _downsample_color
+
+    color = np.random.default_rng(0).uniform(size=(7, 9, 3)).astype(np.float32)
+    small = _downsample_color(color, 2)
+    expected = color[:6, :8].reshape(3, 2, 4, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(small, expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("preset, exposure_px, warns", [("fast", 9.0, False), ("fast", 15.0, True), ("paper", 9.0, False)])
+def test_the_k_warning_follows_the_presets_step_target(preset, exposure_px, warns):
+    from taichi_gs.stages.deblur import PRESETS, _Frames, _step_warnings
+
+    focal, depth = 200.0, 2.0
+    offsets = np.zeros((2, 2, 6))
+    offsets[1, 1, 0] = exposure_px * depth / focal  # sideways translation giving exposure_px on the image
+    frames = _Frames([], [], np.array([depth, depth]), np.array([[focal, 0, 0], [0, focal, 0], [0, 0, 1.0]]))
+    warnings = _step_warnings(offsets, [0, 1], frames, PRESETS[preset])
+    assert bool(warnings) == warns
+    if warns:  # 15 px over k = 7: 2.5 px steps; --k 9 gives 15 / 8 = 1.9 px, under fast's 2 px
+        assert "2.5 px (frame 1)" in warnings[0] and "--k 9 " in warnings[0]

@@ -36,7 +36,7 @@ def test_flo_layout_is_middlebury(tmp_path):
 def test_truncated_flo_is_an_input_error(tmp_path):
     write_flow(tmp_path / "f.flo", random_flow())
     (tmp_path / "f.flo").write_bytes((tmp_path / "f.flo").read_bytes()[:-8])
-    with pytest.raises(InputError, match="size"):
+    with pytest.raises(InputError, match="truncated"):
         read_flow(tmp_path / "f.flo")
 
 
@@ -99,3 +99,10 @@ def test_seeded_dis_follows_a_motion_that_unseeded_dis_loses():
     unseeded = np.median(np.linalg.norm(dis_flow(a, b) - exact, axis=-1))
     seeded = np.median(np.linalg.norm(dis_flow(a, b, initial=rigid_flow(depth_t, K, guess, fill_holes=True)) - exact, axis=-1))
     assert unseeded > 10.0 and seeded < 0.5  # ~40 px and ~0.2 px measured
+
+
+def test_a_hand_written_middlebury_file_is_read(tmp_path):
+    flow = random_flow(2, 3, seed=5)
+    header = np.array([202021.25], "<f4").tobytes() + np.array([3, 2], "<i4").tobytes()
+    (tmp_path / "m.flo").write_bytes(header + flow.astype("<f4").tobytes())
+    np.testing.assert_array_equal(read_flow(tmp_path / "m.flo"), flow)

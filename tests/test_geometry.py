@@ -60,3 +60,14 @@ def test_backproject_project_round_trip():
 def test_raster_intrinsics_shifts_half_pixel():
     K = g.intrinsics_matrix(100.0, 100.0, 10.0, 20.0)
     assert np.allclose(g.raster_intrinsics(K)[:2, 2], [10.5, 20.5]) and K[0, 2] == 10.0
+
+
+def test_quaternions_convert_in_batches():
+    quats = np.array([[2 * np.cos(0.4), 0, 0, 2 * np.sin(0.4)],  # 0.8 rad about z, not unit: normalised first
+                      [0.5, 0, 0, 0],  # identity
+                      [0, 3, 0, 0]])  # pi about x
+    batch = g.quat_to_rotmat(quats)
+    assert batch.shape == (3, 3, 3)
+    np.testing.assert_allclose(batch[0], g.so3_exp([0, 0, 0.8]), atol=1e-12)
+    np.testing.assert_allclose(batch[1], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(batch[2], np.diag([1.0, -1.0, -1.0]), atol=1e-12)

@@ -47,6 +47,48 @@ def test_point_cloud_round_trip_and_open3d_reads_it(tmp_path):
     assert np.allclose(np.asarray(cloud.points), pts, atol=1e-6) and len(cloud.colors) == 100
 
 
+def test_point_clouds_that_open3d_writes_in_ascii_are_read(tmp_path):
+    rng = np.random.default_rng(1)
+    pts = rng.normal(size=(20, 3))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    cloud.colors = o3d.utility.Vector3dVector(rng.uniform(size=(20, 3)))
+    assert o3d.io.write_point_cloud(str(tmp_path / "a.ply"), cloud, write_ascii=True)
+    assert b"format ascii" in (tmp_path / "a.ply").read_bytes()[:200]
+    p, c = read_point_cloud(tmp_path / "a.ply")
+    np.testing.assert_allclose(p, pts, atol=1e-5)
+    np.testing.assert_allclose(c, np.asarray(cloud.colors), atol=0.5 / 255 + 1e-6)
+
+
+def test_big_endian_and_vertex_after_another_element_are_read(tmp_path):
+    from plyfile import PlyData, PlyElement
+
+    vertex = np.array([(1.0, 2.0, 3.0), (4.0, 5.0, 6.0)], dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4")])
+    camera = np.array([(1.5,)], dtype=[("focal", ">f4")])
+    PlyData([PlyElement.describe(camera, "camera"), PlyElement.describe(vertex, "vertex")],
+            byte_order=">").write(str(tmp_path / "b.ply"))
+    p, c = read_point_cloud(tmp_path / "b.ply")
+    np.testing.assert_array_equal(p, [[1, 2, 3], [4, 5, 6]])
+    assert np.all(c == 0.5)  # no colours: grey
+
+
+def test_unreadable_ply_is_an_input_error(tmp_path):
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nend_header\n\x00")
+    with pytest.raises(InputError, match="bad.ply"):
+        read_point_cloud(tmp_path / "bad.ply")
+    (tmp_path / "text.ply").write_text("hello")
+    with pytest.raises(InputError, match="PLY"):
+        read_ply(tmp_path / "text.ply")
+
+
+def test_splats_padded_to_degree_3_keep_their_low_bands(tmp_path):
+    splats = splats_from_points(np.zeros((3, 3)), np.full((3, 3), 0.25), scale=0.01)
+    write_splats(tmp_path / "s.ply", splats, sh_degree=3)
+    back = read_splats(tmp_path / "s.ply")
+    assert back.sh.shape == (3, 16, 3)
+    np.testing.assert_array_equal(back.sh[:, 0], splats.sh[:, 0])
+    assert not back.sh[:, 1:].any()
+
+
 @pytest.mark.parametrize("m", [1, 4, 16])
 def test_splat_ply_round_trip(tmp_path, m):
     rng = np.random.default_rng(m)

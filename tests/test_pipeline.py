@@ -38,7 +38,7 @@ def fake_stages(monkeypatch):
                              default=str)
         for name in STAGE_OUTPUTS[stage]:
             (out / stage / name).write_text(content)
-        return section, "fake"
+        return section, "fake", []
 
     monkeypatch.setattr(pipeline, "_execute", execute)
     return calls

@@ -2,70 +2,41 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData, PlyElement, PlyParseError
 
 from ..errors import InputError
 from ..splats import Splats
 from .atomic import atomic_path
 
-_PLY_TYPES = {"float": "f4", "float32": "f4", "double": "f8", "float64": "f8", "uchar": "u1", "uint8": "u1",
-              "char": "i1", "int8": "i1", "ushort": "u2", "uint16": "u2", "short": "i2", "int16": "i2",
-              "uint": "u4", "uint32": "u4", "int": "i4", "int32": "i4"}
-_NUMPY_TO_PLY = {"f4": "float", "f8": "double", "u1": "uchar", "i1": "char", "u2": "ushort", "i2": "short", "u4": "uint", "i4": "int"}
-
-
 def write_ply(path: str | Path, vertices: np.ndarray) -> None:
     """Write a structured array as the vertex element of a binary little-endian PLY, atomically."""
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(vertices)}"]
-    for name in vertices.dtype.names:
-        header.append(f"property {_NUMPY_TO_PLY[vertices.dtype[name].str[1:]]} {name}")
-    header.append("end_header")
-    data = vertices.astype(vertices.dtype.newbyteorder("<"), copy=False)
+    element = PlyElement.describe(np.ascontiguousarray(vertices), "vertex")
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(data.tobytes())
+        PlyData([element], text=False, byte_order="<").write(str(tmp))
 
 
 def read_ply(path: str | Path) -> np.ndarray:
-    """The vertex element of a binary little-endian PLY as a structured array."""
+    """The vertex element of a PLY file (binary of either byte order, or ASCII; other elements and
+    their order do not matter) as a structured array of scalar properties."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "PLY file not found", "give the path of an existing .ply file")
-    with open(path, "rb") as f:
-        if f.readline().strip() != b"ply":
-            raise InputError(path, "not a PLY file", "give a .ply file")
-        fields, count, in_vertex, fmt = [], None, False, None
-        while True:
-            line = f.readline()
-            if not line:
-                raise InputError(path, "PLY header has no end_header", "re-export the file")
-            words = line.decode("ascii", errors="replace").split()
-            if not words:
-                continue
-            if words[0] == "format":
-                fmt = words[1]
-            elif words[0] == "element":
-                in_vertex = words[1] == "vertex"
-                if in_vertex:
-                    count = int(words[2])
-                elif count is None:
-                    raise InputError(path, "the vertex element must come first", "export the vertices first")
-            elif words[0] == "property" and in_vertex:
-                if words[1] == "list":
-                    raise InputError(path, "list properties in the vertex element are not supported", "export plain vertex properties")
-                fields.append((words[2], "<" + _PLY_TYPES[words[1]]))
-            elif words[0] == "end_header":
-                break
-        if fmt != "binary_little_endian":
-            raise InputError(path, f"PLY format {fmt} is not supported", "export as binary_little_endian")
-        if count is None:
-            raise InputError(path, "PLY has no vertex element", "export a point cloud or splat PLY")
-        dtype = np.dtype(fields)
-        data = np.frombuffer(f.read(dtype.itemsize * count), dtype=dtype, count=count)
-    return data.copy()
+    try:
+        ply = PlyData.read(str(path))
+    except (PlyParseError, ValueError, UnicodeDecodeError, EOFError) as err:
+        raise InputError(path, f"not a readable PLY file ({err})", "give a valid .ply file (re-export it)") from None
+    if "vertex" not in ply:
+        raise InputError(path, "PLY has no vertex element", "export a point cloud or splat PLY")
+    data = ply["vertex"].data
+    lists = [name for name in data.dtype.names if data.dtype[name].kind == "O"]
+    if lists:
+        raise InputError(path, f"list properties in the vertex element are not supported ({', '.join(lists)})",
+                         "export plain vertex properties")
+    return data.astype(data.dtype.newbyteorder("="), copy=True)
 
 
 def write_point_cloud(path: str | Path, points: np.ndarray, colors: np.ndarray) -> None:
@@ -90,9 +61,20 @@ def read_point_cloud(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return points, colors
 
 
-def write_splats(path: str | Path, splats: Splats) -> None:
-    """Standard 3DGS PLY: x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3 (w x y z)."""
+def write_splats(path: str | Path, splats: Splats, sh_degree: int | None = None) -> None:
+    """Standard 3DGS PLY: x y z nx ny nz f_dc_0..2 f_rest_* opacity scale_0..2 rot_0..3 (w x y z).
+
+    ``sh_degree``: write this many SH bands, zero-padding the missing higher ones (the reference
+    3DGS loader and SIBR viewer need degree 3, i.e. 45 ``f_rest`` values); default: the splats' own.
+    """
     n, m = len(splats), splats.sh.shape[1]
+    if sh_degree is not None:
+        want = (sh_degree + 1) ** 2
+        if want < m:
+            raise ValueError(f"splats have {m} SH coefficients; cannot write them as degree {sh_degree}")
+        sh = np.zeros((n, want, 3), dtype=np.float32)
+        sh[:, :m] = splats.sh
+        splats, m = dataclasses.replace(splats, sh=sh), want
     names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     names += [f"f_rest_{i}" for i in range(3 * (m - 1))]
     names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]

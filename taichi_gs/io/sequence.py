@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import intrinsics_matrix, pose_from_rt, quat_to_rotmat, rotmat_to_quat
 from .trajectory import read_tum_rows, tum_rows_to_poses
+from . import jsonout
 
 MAX_TIME_DIFFERENCE = 0.02  # seconds, TUM associate.py's default
 MEDIAN_DEPTH_RANGE = (0.1, 100.0)  # metres: outside it the depth scale is surely wrong
@@ -50,7 +51,7 @@ class Intrinsics:
         return intrinsics_matrix(self.fx, self.fy, self.cx, self.cy)
 
     def to_json(self) -> str:
-        return json.dumps(asdict(self), indent=2) + "\n"
+        return jsonout.dumps(asdict(self), indent=2) + "\n"
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ def read_tum_rows(path: str | Path, columns: int = 8) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "file not found", "give the path of an existing TUM trajectory file")
-    rows = []
+    rows, numbers = [], []
     for n, line in enumerate(path.read_text().splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -44,6 +44,7 @@ def read_tum_rows(path: str | Path, columns: int = 8) -> np.ndarray:
                              "use 'timestamp tx ty tz qx qy qz qw' per line")
         try:
             rows.append([float(p) for p in parts[:columns]])
+            numbers.append(n)
         except ValueError:
             raise InputError(path, f"line {n} is not numeric", "remove or comment out the line") from None
     if not rows:
@@ -51,7 +52,20 @@ def read_tum_rows(path: str | Path, columns: int = 8) -> np.ndarray:
     data = np.asarray(rows)
     if not np.all(np.isfinite(data)):
         raise InputError(path, "NaN or inf in trajectory", "remove the non-finite rows")
+    _check_quaternions(path, data, numbers)
     return data
+
+
+def _check_quaternions(path: Path, data: np.ndarray, numbers: list[int]) -> None:
+    """Every pose's quaternion (columns 4-7, and 11-14 in 15-column exposure rows) must have a
+    usable norm: a zero quaternion is no rotation at all and would turn into NaN poses."""
+    for first in range(4, data.shape[1] - 3, 7):
+        norms = np.linalg.norm(data[:, first:first + 4], axis=1)
+        bad = np.flatnonzero(norms < 1e-6)
+        if bad.size:
+            lines = ", ".join(str(numbers[i]) for i in bad[:5]) + (" ..." if bad.size > 5 else "")
+            raise InputError(path, f"{bad.size} pose(s) with a zero quaternion (line {lines})",
+                             "write unit quaternions 'qx qy qz qw', or delete those lines")
 
 
 def tum_rows_to_poses(rows: np.ndarray) -> np.ndarray:

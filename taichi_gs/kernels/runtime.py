@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import taichi as ti
 
@@ -56,6 +61,19 @@ def _has_nvidia_driver() -> bool:
     return count.value > 0
 
 
+def _stdout_to_stderr(function: Callable[..., Backend]) -> Callable[..., Backend]:
+    """Run ``function`` with Python's stdout sent to stderr: ``ti.init`` prints "[Taichi] Starting
+    on arch=..." there, and stdout carries results (``info``, ``--json``)."""
+
+    @functools.wraps(function)
+    def wrapper(*args: Any, **kwargs: Any) -> Backend:
+        with contextlib.redirect_stdout(sys.stderr):
+            return function(*args, **kwargs)
+
+    return wrapper
+
+
+@_stdout_to_stderr
 def init(arch: str = "auto", default_fp: str = "f32", debug: bool = False) -> Backend:
     """Initialise Taichi once and return the backend obtained.
 

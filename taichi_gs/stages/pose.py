@@ -26,6 +26,7 @@ from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_m
 from ..geometry import invert, se3_log
 from ..icp import depth_cloud, multiscale_point_to_plane, reliable_depth_mask, rgbd_odometry
 from ..io.atomic import write_text
+from ..io import jsonout
 from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
@@ -365,7 +366,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
         if relative is None:
             prior = relatives[-1].transform if relatives else np.eye(4)
             relative = _estimate_pair(sequence, provider, k, K, config, prior)
-            write_text(pair_dir / f"{k:06d}.json", json.dumps({"config_key": key, **relative.to_dict()}) + "\n")
+            write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
         relatives.append(relative)
         if progress is not None:
             progress(k + 1, n - 1)
@@ -375,7 +376,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     result = PoseResult(poses, pairs)
     paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
     write_tum(paths["trajectory"], np.asarray(sequence.timestamps), poses, header="taichi-gs stage 1, camera-to-world")
-    write_text(paths["pairs"], json.dumps({"summary": result.summary(), "pairs": pairs}, indent=1) + "\n")
+    write_text(paths["pairs"], jsonout.dumps({"summary": result.summary(), "pairs": pairs}, indent=1) + "\n")
     points, colors = fuse_points(sequence, poses, config)
     write_point_cloud(paths["points"], points, colors)
     result.paths = paths

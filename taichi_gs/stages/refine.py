@@ -33,6 +33,7 @@ from ..config import tomllib
 from ..errors import InputError
 from ..geometry import adjoint, se3_exp
 from ..io.atomic import atomic_path, write_text
+from ..io import jsonout
 from ..io.ply import read_point_cloud, write_point_cloud, write_splats
 from ..io.sequence import Sequence
 from ..io.trajectory import read_tum, write_tum
@@ -285,5 +286,5 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, poses: np.ndarray, model
             "depth L1 (m)": (it, np.array([h["depth"] for h in history])),
             "opacity binarisation": (it, np.array([h["opacity"] for h in history])),
         }, "stage 2: refinement losses", "iteration", "loss", log_y=True)
-    write_text(stage_dir / "history.json", json.dumps(history) + "\n")
+    write_text(stage_dir / "history.json", jsonout.dumps(history) + "\n")
     write_tum(stage_dir / "trajectory.txt", sequence.timestamps, poses, header="taichi-gs stage 2 (refine), camera-to-world")

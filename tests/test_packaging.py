@@ -1,0 +1,78 @@
+"""Packaging: what pyproject.toml declares matches what the code imports, on every Python we accept."""
+
+from __future__ import annotations
+
+import glob
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+from packaging.requirements import Requirement
+
+ROOT = Path(__file__).resolve().parents[1]
+PROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+
+
+def _requirements() -> dict[str, Requirement]:
+    return {Requirement(text).name: Requirement(text) for text in PROJECT["dependencies"]}
+
+
+def test_tomli_is_declared_exactly_where_config_imports_it():
+    tomli = _requirements().get("tomli")
+    assert tomli is not None, "config.py imports tomli on Python < 3.11"
+    assert tomli.marker is not None
+    assert tomli.marker.evaluate({"python_version": "3.10"})
+    assert not tomli.marker.evaluate({"python_version": "3.11"})
+    assert "sys.version_info >= (3, 11)" in (ROOT / "taichi_gs" / "config.py").read_text()
+
+
+def test_every_third_party_import_of_the_package_is_a_declared_dependency():
+    import ast
+
+    declared = set(_requirements()) | {"opencv-python-headless"}
+    import_names = {"cv2": "opencv-python-headless", "skimage": "scikit-image", "yaml": "pyyaml"}
+    stdlib = set(sys.stdlib_module_names) | {"tomllib", "tomli", "taichi_gs"}
+    missing = set()
+    for path in (ROOT / "taichi_gs").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module] if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module else [])
+            for name in names:
+                top = name.split(".")[0]
+                if top not in stdlib and import_names.get(top, top) not in declared:
+                    missing.add(f"{top} ({path.name})")
+    assert not missing, f"imported but not in pyproject dependencies: {sorted(missing)}"
+
+
+def test_license_is_an_spdx_expression():
+    assert PROJECT["license"] == "Apache-2.0"
+
+
+def _python310() -> str | None:
+    candidates = [shutil.which("python3.10"), *sorted(glob.glob(str(Path.home() / ".pyenv/versions/3.10*/bin/python3.10")))]
+    for candidate in filter(None, candidates):
+        try:
+            out = subprocess.run([candidate, "-c", "import sys; print(sys.version_info[:2])"], capture_output=True,
+                                 text=True, timeout=30)
+        except OSError:
+            continue
+        if out.returncode == 0 and out.stdout.strip() == "(3, 10)":
+            return candidate
+    return None
+
+
+def test_sources_compile_on_python_3_10():
+    python = _python310()
+    if python is None:
+        pytest.skip("no Python 3.10 interpreter here; the metadata test above covers tomli")
+    result = subprocess.run([python, "-m", "compileall", "-q", "-f", "-d", "x", str(ROOT / "taichi_gs")],
+                            capture_output=True, text=True, timeout=120, env={"PYTHONPYCACHEPREFIX": "/tmp/pycache310"})
+    assert result.returncode == 0, result.stdout + result.stderr
