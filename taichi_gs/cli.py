@@ -199,6 +199,17 @@ CxOption = Annotated[Optional[float], typer.Option("--cx", help="Principal point
 CyOption = Annotated[Optional[float], typer.Option("--cy", help="Principal point y (px).")]
 DepthScaleOption = Annotated[Optional[float], typer.Option("--depth-scale", help="Depth PNG units per metre (TUM: 5000).")]
 ConfigOption = Annotated[Optional[Path], typer.Option("--config", help="TOML file with [pose], [refine], [deblur] tables.")]
+FormatOption = Annotated[Optional[str], typer.Option("--format", help="Input layout (default: detected): taichi-gs | tum | 7scenes | scannet | replica | stray.")]
+CameraOption = Annotated[Optional[str], typer.Option("--camera", help="TUM camera fr1 | fr2 | fr3 (intrinsics and distortion; default from the folder name).")]
+EveryOption = Annotated[int, typer.Option("--every", min=1, help="Keep every N-th frame.")]
+ScaleOption = Annotated[float, typer.Option("--scale", help="Read frames at S times their width and height (0.5: half).")]
+
+
+def _open_input(folder: Path, fx, fy, cx, cy, depth_scale, format: str | None, camera: str | None, every: int, scale: float):
+    from .io.sequence import load_sequence
+
+    return load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), format=format, camera=camera,
+                         every=every, scale=scale)
 
 
 @app.command()
@@ -210,17 +221,17 @@ def pose(
     config_file: ConfigOption = None,
     fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
     depth_scale: DepthScaleOption = None,
+    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
 ) -> None:
     """Stage 1: relative poses from optical flow and depth, refined by ICP, chained; fused point cloud."""
-    from .io.sequence import load_sequence
     from .pipeline import resolve_sections, run_stage, write_run_info
 
     _check_output_folder(folder, out)
-    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale))
+    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale)
     config = resolve_sections("fast", config_file, only=("pose",))["pose"]
     if flow_dir is not None:
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
-    write_run_info(out, folder)
+    write_run_info(out, folder, sequence.source)
     _, summary = run_stage("pose", sequence, out, config, progress_bar)
     console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
 
@@ -243,10 +254,9 @@ def refine(
     config_file: ConfigOption = None,
 ) -> None:
     """Stage 2: refine poses, positions and opacities of fixed-scale Gaussians against the input depth."""
-    from .io.sequence import load_sequence
-    from .pipeline import resolve_sections, run_stage, sequence_folder
+    from .pipeline import open_run_sequence, resolve_sections, run_stage
 
-    sequence = load_sequence(sequence_folder(out))
+    sequence = open_run_sequence(out)
     config = resolve_sections(preset.value, config_file, only=("refine",))["refine"]
     _init_backend()
     _, summary = run_stage("refine", sequence, out, config, progress_bar, poses=poses, points=points)
@@ -263,14 +273,14 @@ def reconstruct(
     force: Annotated[Optional[str], typer.Option(help="Rerun from this stage on: pose | refine | deblur.")] = None,
     fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
     depth_scale: DepthScaleOption = None,
+    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
 ) -> None:
     """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
-    from .io.sequence import load_sequence
     from .pipeline import reconstruct as run_all
     from .pipeline import resolve_sections
 
     _check_output_folder(folder, out)
-    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale))
+    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale)
     sequence.check_all()
     sections = resolve_sections(preset.value, config_file)
     _init_backend()
@@ -299,10 +309,9 @@ def render(
 ) -> None:
     """Sharp renders of the newest splats along a camera path: OUT/render/PATH/*.png and PATH.gif."""
     from .export import render_path
-    from .io.sequence import load_sequence
-    from .pipeline import sequence_folder
+    from .pipeline import open_run_sequence
 
-    sequence = load_sequence(sequence_folder(out))
+    sequence = open_run_sequence(out)
     _init_backend()
     with progress_bar(f"render {path.value}", frames) as update:
         target = render_path(out, sequence, path.value, frames, scale, progress=update)
@@ -324,14 +333,13 @@ def export(
 ) -> None:
     """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, or PLYs."""
     from .export import export_colmap, export_nerfstudio, export_ply
-    from .io.sequence import load_sequence
-    from .pipeline import sequence_folder
+    from .pipeline import open_run_sequence
 
     dest = dest or out / "export" / format.value
     if format is ExportFormat.ply:
         written = export_ply(out, dest)
     else:
-        sequence = load_sequence(sequence_folder(out))
+        sequence = open_run_sequence(out)
         exporter = export_nerfstudio if format is ExportFormat.nerfstudio else export_colmap
         written = exporter(out, sequence, dest)
     console.print(f"exported {format.value} to {written}")
@@ -347,10 +355,9 @@ def deblur(
     holdout: Annotated[Optional[str], typer.Option(help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
-    from .io.sequence import load_sequence
-    from .pipeline import resolve_sections, run_stage, sequence_folder
+    from .pipeline import open_run_sequence, resolve_sections, run_stage
 
-    sequence = load_sequence(sequence_folder(out))
+    sequence = open_run_sequence(out)
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
     changes: dict[str, int] = {} if k is None else {"k": k}
     if holdout is not None:

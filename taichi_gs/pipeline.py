@@ -51,19 +51,45 @@ class StageReport:
     summary: str
 
 
-def write_run_info(run_dir: Path, sequence_folder: Path) -> None:
-    """Record which sequence a run folder was made from, so `eval` can find its ground truth."""
-    write_text(run_dir / RUN_INFO, json.dumps({"sequence": str(sequence_folder.resolve())}, indent=2) + "\n")
+def write_run_info(run_dir: Path, sequence_folder: Path, source: dict[str, Any] | None = None) -> None:
+    """Record which sequence a run folder was made from and how it was read (format, every, scale,
+    camera, intrinsics flags: ``Sequence.source``), so later commands reopen it the same way."""
+    info = {"sequence": str(Path(sequence_folder).resolve()), **(source or {})}
+    write_text(run_dir / RUN_INFO, json.dumps(info, indent=2) + "\n")
 
 
 def sequence_folder(run_dir: Path, gt: Path | None = None) -> Path:
     """The input sequence of a run: ``gt`` if given, else the one recorded in RUN_DIR/run.json."""
     if gt is not None:
         return gt
+    return Path(_run_info(run_dir)["sequence"])
+
+
+def _run_info(run_dir: Path) -> dict[str, Any]:
     info = run_dir / RUN_INFO
     if not info.is_file():
         raise InputError(run_dir, f"no {RUN_INFO} naming the input sequence", "pass --gt SEQUENCE_FOLDER")
-    return Path(json.loads(info.read_text())["sequence"])
+    try:
+        record = json.loads(info.read_text())
+    except ValueError:
+        record = None
+    if not isinstance(record, dict) or "sequence" not in record:
+        raise InputError(info, "is not a run record naming the input sequence", "rerun 'taichi-gs reconstruct' or pass --gt")
+    return record
+
+
+def open_run_sequence(run_dir: Path, gt: Path | None = None) -> Sequence:
+    """The input sequence of a run, read as the run read it (run.json's format, every, scale, camera,
+    intrinsics flags). With ``gt`` (another copy of the input), only every and scale are reused."""
+    from .io.sequence import IntrinsicsOverride, load_sequence
+
+    if gt is not None:
+        record = _run_info(run_dir) if (run_dir / RUN_INFO).is_file() else {}
+        return load_sequence(gt, every=int(record.get("every", 1)), scale=float(record.get("scale", 1.0)))
+    record = _run_info(run_dir)
+    return load_sequence(record["sequence"], IntrinsicsOverride(**record.get("intrinsics", {})),
+                         format=record.get("format"), camera=record.get("camera"),
+                         every=int(record.get("every", 1)), scale=float(record.get("scale", 1.0)))
 
 
 def stage_presets(stage: str) -> dict[str, Any]:
@@ -197,7 +223,7 @@ def reconstruct(
         if force not in STAGES:
             raise InputError(None, f"unknown stage {force!r} for --force", f"use one of {', '.join(STAGES)}")
         clear_stages(out, force)
-    write_run_info(out, sequence.root)
+    write_run_info(out, sequence.root, sequence.source)
     write_config(out / "config.toml", sections)
     reports: list[StageReport] = []
     upstream_ran = False

@@ -13,9 +13,9 @@ from . import __version__
 from .errors import InputError
 from .evaluate import align_trajectory, inverse_depth_rmse, match_by_time, psnr, ssim, trajectory_errors
 from .io.atomic import write_text
-from .io.sequence import Sequence, load_sequence, read_color, read_depth
+from .io.sequence import Sequence, read_color, read_depth
 from .io.trajectory import read_tum
-from .pipeline import iter_stage_records, sequence_folder
+from .pipeline import iter_stage_records, open_run_sequence
 from .plots import image_grid, line_plot, trajectory_plot
 
 STAGES = ("pose", "refine", "deblur")
@@ -27,7 +27,7 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(run_dir, "run folder not found", "give the --out folder of a taichi-gs run")
-    sequence = load_sequence(sequence_folder(run_dir, gt))
+    sequence = open_run_sequence(run_dir, gt)
     if sequence.gt_poses is None:
         raise InputError(sequence.root, "sequence has no groundtruth.txt", "evaluate against a sequence with ground truth")
     trajectories: dict[str, Any] = {}
