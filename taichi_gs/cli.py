@@ -236,6 +236,24 @@ def pose(
     console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
 
 
+@app.command("import")
+@handles_errors
+def import_(
+    folder: Annotated[Path, typer.Argument(help="Input sequence folder, any readable layout (see --format).")],
+    out: Annotated[Path, typer.Option("--out", help="New folder to write the taichi-gs layout into.")],
+    fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
+    depth_scale: DepthScaleOption = None,
+    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
+) -> None:
+    """Convert a sequence to taichi-gs's own layout (frames.txt, rgb/, depth/, intrinsics.json, groundtruth.txt)."""
+    from .io.convert import import_sequence
+
+    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale)
+    with progress_bar("import", len(sequence)) as update:
+        import_sequence(sequence, out, progress=lambda done, total: update(done, total))
+    console.print(f"wrote {len(sequence)} frames ({sequence.source['format']}) to {out}", highlight=False)
+
+
 class Preset(str, Enum):
     fast = "fast"
     paper = "paper"

@@ -12,10 +12,10 @@ from types import ModuleType
 
 from ...errors import InputError
 from ..sequence import Sequence
-from . import own, sevenscenes, tum
+from . import own, replica, scannet, sevenscenes, stray, tum
 from .common import ReadOptions
 
-READERS: dict[str, ModuleType] = {m.NAME: m for m in (own, tum, sevenscenes)}
+READERS: dict[str, ModuleType] = {m.NAME: m for m in (own, tum, sevenscenes, scannet, replica, stray)}
 FORMATS = tuple(READERS)
 
 __all__ = ["FORMATS", "READERS", "ReadOptions", "detect_format", "open_format"]
