@@ -340,22 +340,30 @@ class ExportFormat(str, Enum):
     nerfstudio = "nerfstudio"
     colmap = "colmap"
     ply = "ply"
+    mesh = "mesh"
 
 
 @app.command()
 @handles_errors
 def export(
     out: Annotated[Path, typer.Argument(help="Finished run folder.")],
-    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio | colmap | ply")] = ExportFormat.nerfstudio,
+    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio | colmap | ply | mesh")] = ExportFormat.nerfstudio,
     dest: Annotated[Optional[Path], typer.Option(help="Target folder (default OUT/export/FORMAT).")] = None,
+    voxel_size: Annotated[Optional[float], typer.Option("--voxel-size", min=0.0005, help="mesh: TSDF voxel in metres (default from the scene's depth).")] = None,
 ) -> None:
-    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, or PLYs."""
+    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, PLYs, or a TSDF mesh."""
     from .export import export_colmap, export_nerfstudio, export_ply
     from .pipeline import open_run_sequence
 
     dest = dest or out / "export" / format.value
     if format is ExportFormat.ply:
         written = export_ply(out, dest)
+    elif format is ExportFormat.mesh:
+        from .mesh import export_mesh
+
+        sequence = open_run_sequence(out)
+        with progress_bar("TSDF fusion", len(sequence)) as update:
+            written = export_mesh(out, sequence, dest, voxel_size, progress=lambda done, total: update(done, total))
     else:
         sequence = open_run_sequence(out)
         exporter = export_nerfstudio if format is ExportFormat.nerfstudio else export_colmap
