@@ -1,8 +1,11 @@
-"""A triangle mesh of a finished run: the input depth fused into a TSDF (Open3D's scalable TSDF) at
-the run's final poses, coloured from the deblurred sharp renders rather than the blurred input.
+"""A triangle mesh of a finished run: the input depth fused into a TSDF (Open3D's uniform TSDF volume
+over the scene's bounds) at the run's final poses, coloured from the deblurred sharp renders rather
+than the blurred input.
 
-The voxel size defaults to the scene's scale (median valid depth / 200, clamped to 2 mm - 5 cm); the
+The voxel size defaults to the scene's scale (median valid depth / 200, clamped to 2 mm - 5 cm) and
+is enlarged where the bounds would need more than ``MAX_RESOLUTION`` voxels a side (memory); the
 truncation distance is 4 voxels; depth beyond the 99th percentile of the sampled frames is ignored.
+(Open3D 0.20's ScalableTSDFVolume integrates nothing in this build, hence the uniform volume.)
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from .io.sequence import Sequence, read_color
 
 VOXEL_RANGE = (0.002, 0.05)  # metres
 VOXELS_PER_MEDIAN_DEPTH = 200.0
+MAX_RESOLUTION = 256  # voxels a side: 256^3 voxels of 20 bytes = 335 MB
 
 
 def scene_voxel_size(sequence: Sequence) -> tuple[float, float]:
@@ -32,6 +36,24 @@ def scene_voxel_size(sequence: Sequence) -> tuple[float, float]:
         raise InputError(sequence.depth_paths[0], "no valid depth in the sampled frames", "check the depth files")
     voxel = float(np.clip(np.median(valid) / VOXELS_PER_MEDIAN_DEPTH, *VOXEL_RANGE))
     return voxel, float(np.percentile(valid, 99))
+
+
+def scene_bounds(sequence: Sequence, poses: np.ndarray, depth_max: float, frames: int = 10,
+                 stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """World-space bounding box (min, max corners) of the valid depth of up to ``frames`` frames."""
+    K = sequence.K()
+    low, high = np.full(3, np.inf), np.full(3, -np.inf)
+    for i in np.unique(np.linspace(0, len(sequence) - 1, num=min(frames, len(sequence))).astype(int)):
+        depth = sequence.depth(int(i))[::stride, ::stride]
+        v, u = np.nonzero((depth > 0) & (depth <= depth_max))
+        z = depth[v, u]
+        cam = np.stack([(u * stride - K[0, 2]) / K[0, 0] * z, (v * stride - K[1, 2]) / K[1, 1] * z, z], axis=1)
+        world = cam @ poses[i][:3, :3].T + poses[i][:3, 3]
+        if len(world):
+            low, high = np.minimum(low, world.min(axis=0)), np.maximum(high, world.max(axis=0))
+    if not np.all(np.isfinite(low)):
+        raise InputError(sequence.depth_paths[0], "no valid depth to bound the scene", "check the depth files")
+    return low, high
 
 
 def sharp_colors(run_dir: Path, sequence: Sequence, poses: np.ndarray) -> Iterator[np.ndarray]:
@@ -60,8 +82,14 @@ def fuse_mesh(run_dir: Path, sequence: Sequence, voxel_size: float | None = None
     poses = final_poses(run_dir, sequence)
     auto_voxel, depth_max = scene_voxel_size(sequence)
     voxel = voxel_size or auto_voxel
-    volume = o3d.pipelines.integration.ScalableTSDFVolume(
-        voxel_length=voxel, sdf_trunc=4.0 * voxel, color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8)
+    low, high = scene_bounds(sequence, poses, depth_max)
+    low, high = low - 4 * voxel, high + 4 * voxel
+    length = float(np.max(high - low))
+    resolution = int(min(MAX_RESOLUTION, np.ceil(length / voxel)))
+    voxel = length / resolution
+    volume = o3d.pipelines.integration.UniformTSDFVolume(
+        length=length, resolution=resolution, sdf_trunc=4.0 * voxel,
+        color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8, origin=low.reshape(3, 1))
     intr = sequence.intrinsics
     camera = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy, intr.cx, intr.cy)
     for i, color in enumerate(sharp_colors(run_dir, sequence, poses)):
