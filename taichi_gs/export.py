@@ -20,7 +20,7 @@ from .camera_paths import orbit_path, trajectory_path
 from .errors import InputError
 from .geometry import intrinsics_matrix, invert, rotmat_to_quat
 from .io.atomic import atomic_path, write_text
-from .io.images import to_uint8, write_png
+from .io.images import encode_depth, to_uint8, write_png
 from .io.ply import read_point_cloud, read_splats
 from .io.sequence import Sequence
 from .io.trajectory import read_tum
@@ -62,9 +62,18 @@ def _frame_images(run_dir: Path, sequence: Sequence, dest: Path) -> list[tuple[s
         source = sharp_dir / f"{stem}.png"
         if not source.is_file():
             source = sequence.rgb_paths[i]
+        depth_source = sequence.depth_paths[i]
+        if sequence.transform is not None:  # read through a resampling: write the frames as read
+            image, depth = f"images/{stem}.png", f"depth/{stem}.png"
+            if source.parent == sharp_dir:
+                _copy(source, dest / image)
+            else:
+                write_png(dest / image, to_uint8(sequence.color(i)))
+            write_png(dest / depth, encode_depth(sequence.depth(i), sequence.intrinsics.depth_scale))
+            names.append((image, depth))
+            continue
         image = f"images/{stem}{source.suffix}"
         _copy(source, dest / image)
-        depth_source = sequence.depth_paths[i]
         depth = f"depth/{stem}{depth_source.suffix}" if depth_source.suffix == ".png" else None
         if depth is not None:
             _copy(depth_source, dest / depth)

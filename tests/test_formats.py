@@ -265,3 +265,22 @@ def test_texture_is_not_constant():
     """Guards the colour checks above: the texture varies across the frame in every channel."""
     color, _ = render(SMALL_K, truth_poses()[0], 80, 60)
     assert color.std(axis=(0, 1)).min() > 0.05
+
+
+def test_export_writes_resampled_frames_at_the_read_size(tmp_path):
+    """A sequence read through a transform (ScanNet colour onto the depth grid, --scale) is exported
+    as read, so images, depth and intrinsics agree."""
+    from taichi_gs.export import export_nerfstudio
+    from taichi_gs.io.trajectory import write_tum
+
+    src, _ = _write("scannet", tmp_path)
+    seq = load_sequence(src, scale=0.5)
+    run = tmp_path / "run"
+    write_tum(run / "pose" / "trajectory.txt", seq.timestamps, truth_poses())
+    transforms = json.loads(export_nerfstudio(run, seq, tmp_path / "ns").read_text())
+    assert (transforms["w"], transforms["h"]) == (40, 30)
+    frame = transforms["frames"][1]
+    image = cv2.imread(str(tmp_path / "ns" / frame["file_path"]), cv2.IMREAD_UNCHANGED)
+    depth = cv2.imread(str(tmp_path / "ns" / frame["depth_file_path"]), cv2.IMREAD_UNCHANGED)
+    assert image.shape[:2] == depth.shape == (30, 40)
+    assert np.allclose(depth * transforms["depth_unit_scale_factor"], seq.depth(1), atol=1e-3)
