@@ -223,7 +223,7 @@ def reconstruct(
         if force not in STAGES:
             raise InputError(None, f"unknown stage {force!r} for --force", f"use one of {', '.join(STAGES)}")
         clear_stages(out, force)
-    write_run_info(out, sequence.root, sequence.source)
+    write_run_info(out, sequence.root, getattr(sequence, "source", None))
     write_config(out / "config.toml", sections)
     reports: list[StageReport] = []
     upstream_ran = False
