@@ -119,9 +119,21 @@ def mesh_view(mesh, K: np.ndarray, pose: np.ndarray, width: int, height: int) ->
     v = np.round(K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]).astype(int)
     inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
     u, v, z, colors = u[inside], v[inside], cam[inside, 2], colors[inside]
-    order = np.argsort(-z)  # far first, so nearer vertices overwrite them
     image = np.zeros((height, width, 3))
-    image[v[order], u[order]] = colors[order]
+    if len(z) == 0:
+        return to_uint8(image)
+    triangles = np.asarray(mesh.triangles)
+    edge = float(np.median(np.linalg.norm(points[triangles[:, 0]] - points[triangles[:, 1]], axis=1)))
+    radius = int(np.clip(np.ceil(0.5 * edge * K[0, 0] / np.median(z)), 0, 2))  # fill the gaps between vertices
+    offsets = [(du, dv) for dv in range(-radius, radius + 1) for du in range(-radius, radius + 1)]
+    uu = np.concatenate([np.clip(u + du, 0, width - 1) for du, _ in offsets])
+    vv = np.concatenate([np.clip(v + dv, 0, height - 1) for _, dv in offsets])
+    zz, cc = np.tile(z, len(offsets)), np.tile(colors, (len(offsets), 1))
+    pixel = vv * width + uu
+    nearest = np.full(height * width, np.inf)
+    np.minimum.at(nearest, pixel, zz)
+    hit = zz == nearest[pixel]  # the nearest vertex landing on each pixel
+    image.reshape(-1, 3)[pixel[hit]] = cc[hit]
     return to_uint8(image)
 
 

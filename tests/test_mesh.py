@@ -9,7 +9,7 @@ from format_fixtures import PLANE_Z, texture, truth_poses, write_own
 from taichi_gs.io.images import to_uint8, write_png
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.io.trajectory import write_tum
-from taichi_gs.mesh import export_mesh
+from taichi_gs.mesh import export_mesh, mesh_view
 from taichi_gs.pipeline import write_run_info
 
 
@@ -30,3 +30,7 @@ def test_mesh_lies_on_the_surface_and_takes_the_sharp_colours(tmp_path):
     expected = 1.0 - texture(vertices[:, 0], vertices[:, 1])
     assert np.abs(colors - expected).mean() < 0.04
     assert (run / "report" / "mesh_view.png").is_file()
+    view = mesh_view(mesh, seq.K(), truth_poses()[1], 80, 60) / 255.0  # seen from a frame's own camera
+    seen = view.sum(axis=2) > 0
+    assert seen.mean() > 0.6
+    assert np.abs(view - (1.0 - seq.color(1)))[seen].mean() < 0.06
