@@ -64,6 +64,19 @@ def test_7scenes_seq_folder_defaults_and_no_reading_code(tmp_path):
     assert np.all(seq.depth(0)[:2, :5] == 0)  # 65535 = no reading
 
 
+def test_rounded_pose_matrices_are_read_as_rigid_motions(tmp_path):
+    """7-Scenes stores rotations with determinants off by ~1e-4; the reader returns the nearest
+    rotation, so a perfect estimate has ~0 rotation error rather than ~1 degree."""
+    write_7scenes(tmp_path / "s")
+    pose = truth_poses()[1]
+    skewed = pose.copy()
+    skewed[:3, :3] *= 1.0 - 1.5e-4
+    (tmp_path / "s" / "frame-000001.pose.txt").write_text("\n".join(" ".join(f"{v:.9g}" for v in r) for r in skewed))
+    read = load_sequence(tmp_path / "s").gt_poses[1]
+    assert np.allclose(read[:3, :3].T @ read[:3, :3], np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(read[:3, :3]), 1.0)
+    assert np.allclose(read, pose, atol=1e-8)
+
+
 def test_7scenes_without_pose_files_runs_without_ground_truth(tmp_path):
     write_7scenes(tmp_path / "s")
     for p in (tmp_path / "s").glob("*.pose.txt"):

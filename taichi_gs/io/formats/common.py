@@ -75,6 +75,23 @@ def pose_files(paths: list[Path], fix: str) -> np.ndarray | None:
     if len(present) < len(paths):
         missing = next(p for p in paths if not p.is_file())
         raise InputError(missing, f"pose file missing ({len(paths) - len(present)} of {len(paths)} frames have none)", fix)
-    poses = np.stack([read_matrix(p, (4, 4), "pose", fix) for p in present])
-    poses[~np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)] = np.nan
+    return rigid(np.stack([read_matrix(p, (4, 4), "pose", fix) for p in present]))
+
+
+def rigid(poses: np.ndarray) -> np.ndarray:
+    """4x4 poses with each rotation block replaced by the nearest rotation (datasets store rounded,
+    slightly non-orthonormal matrices: 7-Scenes' determinants are off by ~1e-4, which alone reads as
+    ~1 degree of rotation error); poses with a non-finite entry become all NaN."""
+    poses = np.array(poses, dtype=float)
+    finite = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
+    poses[~finite] = np.nan
+    if finite.any():
+        U, _, Vt = np.linalg.svd(poses[finite, :3, :3])
+        flip = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
+        U[:, :, 2] *= flip[:, None]
+        rotations = U @ Vt
+        block = poses[finite]
+        block[:, :3, :3] = rotations
+        block[:, 3] = [0.0, 0.0, 0.0, 1.0]
+        poses[finite] = block
     return poses

@@ -13,7 +13,7 @@ import numpy as np
 
 from ...errors import InputError
 from ..sequence import Sequence
-from .common import NOMINAL_FPS, ReadOptions, _json_keys, intrinsics_with_defaults, numbered
+from .common import NOMINAL_FPS, ReadOptions, _json_keys, intrinsics_with_defaults, numbered, rigid
 
 NAME = "replica"
 COLOR = r"frame(\d+)\.(?:jpg|png)"
@@ -54,5 +54,4 @@ def _trajectory(path: Path, frames: int) -> np.ndarray | None:
         poses = np.array(rows, dtype=float).reshape(frames, 4, 4)
     except ValueError:
         raise InputError(path, "holds something that is not a number", fix) from None
-    poses[~np.all(np.isfinite(poses.reshape(frames, -1)), axis=1)] = np.nan
-    return poses
+    return rigid(poses)
