@@ -260,6 +260,18 @@ TrustDepthOption = Annotated[bool, typer.Option(
     "--trust-depth-scale", help="Accept a median depth outside 0.25-6 m (the indoor check of the depth scale).")]
 TimeToleranceOption = Annotated[Optional[float], typer.Option(
     "--time-tolerance", min=0.0, help="TUM layout: max seconds between associated colour and depth (default 0.02).")]
+FormatOption = Annotated[Optional[str], typer.Option("--format", help="Input layout (default: detected): taichi-gs | tum | 7scenes | scannet | replica | stray.")]
+CameraOption = Annotated[Optional[str], typer.Option("--camera", help="TUM camera fr1 | fr2 | fr3 (intrinsics and distortion; default from the folder name).")]
+EveryOption = Annotated[int, typer.Option("--every", min=1, help="Keep every N-th frame.")]
+ScaleOption = Annotated[float, typer.Option("--scale", help="Read frames at S times their width and height (0.5: half).")]
+
+
+def _open_input(folder: Path, fx, fy, cx, cy, depth_scale, format: str | None, camera: str | None, every: int,
+                scale: float, time_tolerance: float | None, trust_depth_scale: bool):
+    from .io.sequence import load_sequence
+
+    return load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale,
+                         format=format, camera=camera, every=every, scale=scale)
 
 
 @app.command()
@@ -273,23 +285,46 @@ def pose(
     depth_scale: DepthScaleOption = None,
     trust_depth_scale: TrustDepthOption = False,
     time_tolerance: TimeToleranceOption = None,
+    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
 ) -> None:
     """Stage 1: relative poses from optical flow and depth, refined by ICP, chained; fused point cloud."""
     from .io.lock import output_lock
-    from .io.sequence import load_sequence
     from .pipeline import check_run_input, resolve_sections, run_stage, write_run_info
 
     _check_output_folder(folder, out)
     config = resolve_sections("fast", config_file, only=("pose",))["pose"]
     if flow_dir is not None:
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
-    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale)
+    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
+                           trust_depth_scale)
     _init_backend()
     with output_lock(out):
         check_run_input(out, sequence)
         write_run_info(out, sequence)
         _, summary = run_stage("pose", sequence, out, config, progress_bar)
     console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
+
+
+@app.command("import")
+@handles_errors
+def import_(
+    folder: Annotated[Path, typer.Argument(help="Input sequence folder, any readable layout (see --format).")],
+    out: Annotated[Path, typer.Option("--out", help="New folder to write the taichi-gs layout into.")],
+    fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
+    depth_scale: DepthScaleOption = None,
+    trust_depth_scale: TrustDepthOption = False,
+    time_tolerance: TimeToleranceOption = None,
+    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
+) -> None:
+    """Convert a sequence to taichi-gs's own layout (frames.txt, rgb/, depth/, intrinsics.json, groundtruth.txt)."""
+    from .io.convert import import_sequence
+
+    _check_output_folder(folder, out)
+    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
+                           trust_depth_scale)
+    with progress_bar("import", len(sequence)) as update:
+        import_sequence(sequence, out, progress=lambda done, total: update(done, total))
+    console.print(f"wrote {len(sequence)} frames ({sequence.source['format']}) to {out}", highlight=False)
 
 
 class Preset(str, Enum):
@@ -343,16 +378,17 @@ def reconstruct(
     depth_scale: DepthScaleOption = None,
     trust_depth_scale: TrustDepthOption = False,
     time_tolerance: TimeToleranceOption = None,
+    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
 ) -> None:
     """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
     from .io.lock import output_lock
-    from .io.sequence import load_sequence
     from .pipeline import reconstruct as run_all
     from .pipeline import resolve_sections
 
     _check_output_folder(folder, out)
     sections = resolve_sections(preset.value, config_file)
-    sequence = load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale)
+    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
+                           trust_depth_scale)
     sequence.check_all()
     _init_backend()
 
@@ -396,16 +432,18 @@ class ExportFormat(str, Enum):
     colmap = "colmap"
     ply = "ply"
     gs3d = "3dgs"
+    mesh = "mesh"
 
 
 @app.command()
 @handles_errors
 def export(
     out: Annotated[Path, typer.Argument(help="Finished run folder.")],
-    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio: transforms.json (depth in mm); colmap: text model; ply: splats (SH degree 3) and points; 3dgs: reference 3DGS model folder.")] = ExportFormat.nerfstudio,
+    format: Annotated[ExportFormat, typer.Option("--format", help="nerfstudio: transforms.json (depth in mm); colmap: text model; ply: splats (SH degree 3) and points; 3dgs: reference 3DGS model folder; mesh: TSDF mesh coloured by the sharp renders.")] = ExportFormat.nerfstudio,
     dest: Annotated[Optional[Path], typer.Option(help="Target folder (default OUT/export/FORMAT).")] = None,
+    voxel_size: Annotated[Optional[float], typer.Option("--voxel-size", min=0.0005, help="mesh: TSDF voxel in metres (default from the scene's depth).")] = None,
 ) -> None:
-    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, PLYs, or a 3DGS model folder."""
+    """Write the result for other tools: nerfstudio transforms.json, COLMAP text model, PLYs, a 3DGS model folder, or a TSDF mesh."""
     from .export import export_3dgs, export_colmap, export_nerfstudio, export_ply
     from .io.lock import output_lock
     from .pipeline import STAGES, open_run_sequence
@@ -418,6 +456,11 @@ def export(
     with output_lock(out):
         if format is ExportFormat.ply:
             written = export_ply(out, dest)
+        elif format is ExportFormat.mesh:
+            from .mesh import export_mesh
+
+            with progress_bar("TSDF fusion", len(sequence)) as update:
+                written = export_mesh(out, sequence, dest, voxel_size, progress=lambda done, total: update(done, total))
         else:
             exporter = {ExportFormat.nerfstudio: export_nerfstudio, ExportFormat.colmap: export_colmap,
                         ExportFormat.gs3d: export_3dgs}[format]

@@ -61,10 +61,15 @@ def _frame_images(run_dir: Path, sequence: Sequence, dest: Path, depth: bool = T
     names: list[tuple[str, str | None]] = []
     for i, stem in enumerate(sequence.names):
         source = sharp_dir / f"{stem}.png"
-        if not source.is_file():
-            source = sequence.rgb_paths[i]
-        image = f"images/{stem}{source.suffix}"
-        _copy(source, dest / image)
+        if source.is_file():
+            image = f"images/{stem}.png"
+            _copy(source, dest / image)
+        elif sequence.transform is not None:  # read through a resampling: write the frame as read
+            image = f"images/{stem}.png"
+            write_png(dest / image, to_uint8(sequence.color(i)))
+        else:
+            image = f"images/{stem}{sequence.rgb_paths[i].suffix}"
+            _copy(sequence.rgb_paths[i], dest / image)
         depth_name = None
         if depth:
             depth_name = f"depth/{stem}.png"

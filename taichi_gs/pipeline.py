@@ -95,13 +95,17 @@ def check_run_input(run_dir: Path, sequence: Sequence) -> None:
 
 
 def open_run_sequence(run_dir: Path, gt: Path | None = None) -> Sequence:
-    """The input sequence of a run, reopened with the options it was loaded with; ``gt`` (a sequence
-    folder) replaces the recorded folder, loaded with the same options."""
+    """The input sequence of a run, reopened with the options it was loaded with (format, camera,
+    every, scale, intrinsics flags, ...). ``gt`` (another copy of the input, perhaps in another
+    layout) replaces the recorded folder; its format and camera are detected afresh."""
     from .io.sequence import IntrinsicsOverride, load_sequence
 
     record = _read_run_info(run_dir) if gt is None or (run_dir / RUN_INFO).is_file() else {}
     options = dict(record.get("load_options") or {})
     folder = gt if gt is not None else Path(record["sequence"])
+    if gt is not None:
+        options.pop("format", None)
+        options.pop("camera", None)
     try:
         override = IntrinsicsOverride(**options.pop("override", {}))
         return load_sequence(folder, override, **options)

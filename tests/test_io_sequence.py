@@ -59,7 +59,7 @@ def test_missing_folder(tmp_path):
 
 
 def test_missing_lists(tmp_path):
-    expect_error(tmp_path, "no frames.txt, rgb.txt or depth.txt")
+    expect_error(tmp_path, "no known RGB-D layout")
 
 
 def test_tum_missing_depth_list(tum_layout):

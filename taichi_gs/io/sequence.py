@@ -27,6 +27,7 @@ from ..errors import InputError
 from ..geometry import intrinsics_matrix, pose_from_rt, quat_to_rotmat, rotmat_to_quat
 from .trajectory import read_tum_rows, tum_rows_to_poses
 from . import jsonout
+from .transforms import FrameTransform
 
 MAX_TIME_DIFFERENCE = 0.02  # seconds, TUM associate.py's default
 MEDIAN_DEPTH_RANGE = (0.1, 100.0)  # metres: outside it the depth scale is surely wrong
@@ -74,8 +75,10 @@ class Sequence:
     Attributes: ``root``, ``layout`` ("tum" or "taichi-gs"), ``intrinsics``, ``timestamps`` (N,),
     ``rgb_paths``, ``depth_paths``, ``names`` (colour file stems), ``gt_poses`` (N x 4 x 4
     camera-to-world, NaN where ground truth does not cover a frame, or None), ``exposure_poses``
-    (N x 2 x 4 x 4 start/end, or None), ``sharp_paths`` (or None) and ``load_options`` (how
-    :func:`load_sequence` was called, so a later command reopens the same sequence).
+    (N x 2 x 4 x 4 start/end, or None), ``sharp_paths`` (or None), ``transform`` (applied to each
+    frame as it is read: resampling, undistortion, masking; see ``io.transforms``), ``source``
+    (how it was read: format, every, scale, camera) and ``load_options`` (the arguments of
+    :func:`load_sequence`, recorded in a run's run.json so later commands reopen it the same way).
     """
 
     def __init__(
@@ -89,6 +92,8 @@ class Sequence:
         gt_poses: np.ndarray | None = None,
         exposure_poses: np.ndarray | None = None,
         sharp_paths: list[Path] | None = None,
+        names: list[str] | None = None,
+        transform: FrameTransform | None = None,
     ):
         self.root = root
         self.layout = layout
@@ -96,10 +101,12 @@ class Sequence:
         self.timestamps = timestamps
         self.rgb_paths = rgb_paths
         self.depth_paths = depth_paths
-        self.names = [p.stem for p in rgb_paths]
+        self.names = names if names is not None else [p.stem for p in rgb_paths]
         self.gt_poses = gt_poses
         self.exposure_poses = exposure_poses
         self.sharp_paths = sharp_paths
+        self.transform = transform
+        self.source: dict[str, object] = {"format": layout, "every": 1, "scale": 1.0}
         self.load_options: dict[str, Any] = {}
 
     def __len__(self) -> int:
@@ -122,6 +129,8 @@ class Sequence:
         """Depth of frame i in metres, float32 H x W, 0 where invalid."""
         path = self.depth_paths[i]
         depth = read_depth(path, self.intrinsics.depth_scale)
+        if self.transform is not None:
+            depth = self.transform.depth(path, depth)
         self._check_size(path, depth.shape[:2], "depth")
         return depth
 
@@ -133,6 +142,8 @@ class Sequence:
 
     def _checked_color(self, path: Path) -> np.ndarray:
         color = read_color(path)
+        if self.transform is not None:
+            color = self.transform.color(path, color)
         self._check_size(path, color.shape[:2], "colour")
         return color
 
@@ -162,16 +173,20 @@ def read_color(path: Path) -> np.ndarray:
 
 
 def read_depth(path: Path, depth_scale: float) -> np.ndarray:
-    """Depth in metres from a 16-bit PNG (value / depth_scale) or a float ``.npy`` in metres."""
+    """Depth in metres from a 16-bit PNG (value / depth_scale), or a float ``.npy`` or 32-bit float
+    TIFF in metres (NaN or inf in a float TIFF count as invalid, 0)."""
     if path.suffix == ".npy":
         depth = _load_npy(path)
     else:
         raw = _imread(path)
-        if raw.dtype != np.uint16 or raw.ndim != 2:
+        if raw.ndim == 2 and raw.dtype in (np.float32, np.float64):
+            depth = np.nan_to_num(raw.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        elif raw.dtype != np.uint16 or raw.ndim != 2:
             kind = f"{raw.dtype}, {raw.shape[2] if raw.ndim == 3 else 1} channel(s)"
             raise InputError(path, f"depth must be a 16-bit single-channel PNG, got {kind}",
                              "save depth as uint16 PNG (value = metres x depth_scale)")
-        depth = raw.astype(np.float32) / np.float32(depth_scale)
+        else:
+            depth = raw.astype(np.float32) / np.float32(depth_scale)
     if not np.all(np.isfinite(depth)):
         raise InputError(path, "depth contains NaN or inf", "write 0 for invalid depth")
     if np.any(depth < 0):
@@ -204,30 +219,41 @@ def load_sequence(
     override: IntrinsicsOverride | None = None,
     max_time_difference: float | None = None,
     trust_depth_scale: bool = False,
+    *,
+    format: str | None = None,
+    camera: str | None = None,
+    every: int = 1,
+    scale: float = 1.0,
 ) -> Sequence:
-    """Open a sequence folder (TUM or own layout), checking lists, files, intrinsics and depth scale.
+    """Open a sequence folder in any known layout (detected, or ``format``; see ``io.formats``),
+    keep every ``every``-th frame, read at ``scale`` times the size; checks lists, files,
+    intrinsics and depth scale.
 
     The median valid depth must look like an indoor RGB-D capture (0.25-6 m), which catches the usual
     depth-scale mix-ups (1000 for 5000); ``trust_depth_scale`` relaxes that to 0.1-100 m for scenes
-    that really are that close or far. The call's options are kept in ``sequence.load_options``.
+    that really are that close or far. The call's arguments are kept in ``sequence.load_options``.
     """
+    from .formats import ReadOptions, open_format
+    from .transforms import rescale, subsample
+
     root = Path(folder)
     max_time_difference = MAX_TIME_DIFFERENCE if max_time_difference is None else max_time_difference
     if not root.is_dir():
-        raise InputError(root, "sequence folder not found", "give the folder holding rgb.txt/depth.txt or frames.txt")
-    override = override or IntrinsicsOverride()
-    if (root / "frames.txt").is_file():
-        sequence = _open_own_layout(root, override)
-    elif (root / "rgb.txt").is_file() or (root / "depth.txt").is_file():
-        sequence = _open_tum_layout(root, override, max_time_difference)
-    else:
-        raise InputError(root, "no frames.txt, rgb.txt or depth.txt found",
-                         "give a TUM RGB-D folder or one written by 'taichi-gs synth'")
+        raise InputError(root, "sequence folder not found", "give the folder holding the sequence (see README 'Input formats')")
+    if every < 1:
+        raise InputError(None, f"--every {every} is not a positive integer", "e.g. --every 2 keeps every second frame")
+    if not (math.isfinite(scale) and 0.0 < scale <= 4.0):
+        raise InputError(None, f"--scale {scale} is not in (0, 4]", "e.g. --scale 0.5 for half width and height")
+    options = ReadOptions(override or IntrinsicsOverride(), camera, max_time_difference)
+    sequence = rescale(subsample(open_format(root, options, format), every), scale)
+    if options.override.values():
+        sequence.source = {**sequence.source, "intrinsics": options.override.values()}
     if len(sequence) < 2:
         raise InputError(sequence.root, f"sequence has {len(sequence)} frame(s)", "give at least 2 frames")
     _check_depth_scale(sequence, trust_depth_scale)
-    sequence.load_options = {"override": override.values(), "max_time_difference": max_time_difference,
-                             "trust_depth_scale": trust_depth_scale}
+    sequence.load_options = {"override": options.override.values(), "max_time_difference": max_time_difference,
+                             "trust_depth_scale": trust_depth_scale, "format": sequence.source["format"],
+                             "camera": sequence.source.get("camera"), "every": every, "scale": scale}
     return sequence
 
 

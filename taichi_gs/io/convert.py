@@ -1,0 +1,71 @@
+"""``taichi-gs import``: any readable sequence written out in taichi-gs's own layout.
+
+Writes ``frames.txt``, ``rgb/NAME.png`` (8-bit), ``depth/NAME.png`` (uint16 at the sequence's depth
+scale), ``intrinsics.json``, and when the input has them ``groundtruth.txt``, ``exposure.txt`` and
+``sharp/``, each frame as the reader gives it (resampled, undistorted, masked, subsampled, scaled).
+Everything goes to a temporary folder beside OUT, renamed onto OUT at the end; the input is only read.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .atomic import write_text
+from .images import encode_depth, to_uint8, write_png
+from .sequence import Sequence
+from .trajectory import format_tum
+
+
+def import_sequence(sequence: Sequence, out: Path, progress: Callable[[int, int], None] | None = None) -> Path:
+    """Write ``sequence`` to OUT in the taichi-gs layout; OUT must not exist (or be empty) and must
+    lie outside the input folder."""
+    out = Path(out)
+    source, target = sequence.root.resolve(), out.resolve()
+    if target == source or source in target.parents:
+        raise InputError(out, "output folder lies inside the input folder", "choose an --out outside the input (inputs are never written to)")
+    if target in source.parents:
+        raise InputError(out, "output folder contains the input folder", "choose a new, empty --out folder")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(out, "already exists and is not empty", "choose a new --out folder or delete this one")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    try:
+        _write(sequence, staging, progress)
+        if out.exists():
+            out.rmdir()
+        staging.rename(out)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging)
+    return out
+
+
+def _write(sequence: Sequence, dest: Path, progress: Callable[[int, int], None] | None) -> None:
+    intr = sequence.intrinsics
+    lines = ["# timestamp rgb depth"]
+    for i, (name, t) in enumerate(zip(sequence.names, sequence.timestamps)):
+        write_png(dest / "rgb" / f"{name}.png", to_uint8(sequence.color(i)))
+        write_png(dest / "depth" / f"{name}.png", encode_depth(sequence.depth(i), intr.depth_scale))
+        if sequence.sharp_paths is not None:
+            write_png(dest / "sharp" / f"{name}.png", to_uint8(sequence.sharp(i)))
+        lines.append(f"{t:.6f} rgb/{name}.png depth/{name}.png")
+        if progress is not None:
+            progress(i + 1, len(sequence))
+    write_text(dest / "frames.txt", "\n".join(lines) + "\n")
+    write_text(dest / "intrinsics.json", intr.to_json())
+    if sequence.gt_poses is not None:
+        known = np.all(np.isfinite(sequence.gt_poses.reshape(len(sequence), -1)), axis=1)
+        if known.any():
+            write_text(dest / "groundtruth.txt", format_tum(sequence.timestamps[known], sequence.gt_poses[known],
+                                                            header="timestamp tx ty tz qx qy qz qw"))
+    if sequence.exposure_poses is not None:
+        start = format_tum(sequence.timestamps, sequence.exposure_poses[:, 0]).splitlines()
+        end = format_tum(sequence.timestamps, sequence.exposure_poses[:, 1]).splitlines()
+        rows = [f"{a} {b.split(maxsplit=1)[1]}" for a, b in zip(start, end)]
+        write_text(dest / "exposure.txt", "\n".join(rows) + "\n")

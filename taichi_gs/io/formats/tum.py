@@ -1,0 +1,63 @@
+"""TUM RGB-D (rgb.txt, depth.txt, groundtruth.txt) with the published Freiburg 1/2/3 calibrations.
+
+The camera comes from ``--camera fr1|fr2|fr3``, else from intrinsics.json or the --fx/--fy/--cx/--cy
+flags (then no undistortion), else from the folder name (``rgbd_dataset_freiburg1_...``). A built-in
+camera's lens distortion is removed as frames are read: colour bilinearly, depth by nearest
+neighbour (TUM's depth is registered to the colour camera). Depth PNGs hold 5000 units per metre.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import InputError
+from ..sequence import IntrinsicsOverride, Sequence, _open_tum_layout
+from ..transforms import Undistort, then
+from .common import ReadOptions, _json_keys
+
+NAME = "tum"
+# https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats#intrinsic_camera_calibration_of_the_kinect
+CAMERAS: dict[str, dict[str, object]] = {
+    "fr1": {"fx": 517.3, "fy": 516.5, "cx": 318.6, "cy": 255.3, "distortion": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)},
+    "fr2": {"fx": 520.9, "fy": 521.0, "cx": 325.1, "cy": 249.7, "distortion": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)},
+    "fr3": {"fx": 535.4, "fy": 539.2, "cx": 320.1, "cy": 247.6, "distortion": (0.0, 0.0, 0.0, 0.0, 0.0)},
+}
+PINHOLE = ("fx", "fy", "cx", "cy")
+
+
+def detect(root: Path) -> bool:
+    return (root / "rgb.txt").is_file() or (root / "depth.txt").is_file()
+
+
+def camera_from_name(root: Path) -> str | None:
+    """fr1/fr2/fr3 from a folder name such as rgbd_dataset_freiburg2_desk or fr3_office."""
+    match = re.search(r"(?:freiburg|fr)([123])(?![0-9])", root.resolve().name.lower())
+    return f"fr{match.group(1)}" if match else None
+
+
+def open_sequence(root: Path, options: ReadOptions) -> Sequence:
+    flags = options.override.values()
+    camera = options.camera
+    if camera is not None and camera not in CAMERAS:
+        raise InputError(root, f"unknown --camera {camera!r}", f"use one of {', '.join(CAMERAS)}")
+    given = _json_keys(root / "intrinsics.json") | set(flags)
+    if camera is None and not all(k in given for k in PINHOLE):
+        camera = camera_from_name(root)
+        if camera is None and not any(k in given for k in PINHOLE):
+            raise InputError(root / "intrinsics.json", "no intrinsics: not in the folder, no flags, and the folder name "
+                             "names no Freiburg camera", "pass --camera fr1|fr2|fr3, write intrinsics.json, or pass --fx --fy --cx --cy")
+    override = options.override
+    if camera is not None:
+        values = {k: float(v) for k, v in CAMERAS[camera].items() if k in PINHOLE}
+        override = IntrinsicsOverride(**{**values, **flags})
+    sequence = _open_tum_layout(root, override, options.max_time_difference)
+    if camera is not None:
+        distortion = np.array(CAMERAS[camera]["distortion"], dtype=float)
+        intr = sequence.intrinsics
+        if np.any(distortion != 0):
+            sequence.transform = then(sequence.transform, Undistort(intr.K(), distortion, intr.width, intr.height))
+        sequence.source = {**sequence.source, "camera": camera}
+    return sequence

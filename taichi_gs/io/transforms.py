@@ -1,0 +1,219 @@
+"""Per-frame transforms a ``Sequence`` applies as it reads each frame, and the sequence-level
+operations built on them (``--every``, ``--scale``).
+
+A transform maps (file path, image) to an image. It is keyed by the frame's file path rather than
+its index, so subsampling a sequence keeps it valid. Colour is float32 H x W x 3 in [0, 1]; depth is
+float32 H x W in metres, 0 where invalid. Pixel convention throughout: OpenCV's (pixel centres at
+integer coordinates), so resizing by s maps a coordinate c to (c + 0.5) s - 0.5.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from functools import cached_property
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+
+if TYPE_CHECKING:
+    from .sequence import Intrinsics, Sequence
+
+
+class FrameTransform:
+    """The identity; subclasses override ``color`` and/or ``depth``."""
+
+    def color(self, path: Path, image: np.ndarray) -> np.ndarray:
+        return image
+
+    def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
+        return depth
+
+
+@dataclasses.dataclass(frozen=True)
+class Chain(FrameTransform):
+    """Several transforms, applied in order."""
+
+    steps: tuple[FrameTransform, ...]
+
+    def color(self, path: Path, image: np.ndarray) -> np.ndarray:
+        for step in self.steps:
+            image = step.color(path, image)
+        return image
+
+    def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
+        for step in self.steps:
+            depth = step.depth(path, depth)
+        return depth
+
+
+def then(first: FrameTransform | None, second: FrameTransform) -> FrameTransform:
+    """``first`` followed by ``second`` (``first`` may be None)."""
+    if first is None:
+        return second
+    steps = first.steps if isinstance(first, Chain) else (first,)
+    return Chain((*steps, second))
+
+
+def scaled_size(width: int, height: int, scale: float) -> tuple[int, int]:
+    """Image size after scaling by ``scale`` (rounded, at least 1 pixel)."""
+    return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def scale_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
+    """Intrinsics of the same camera on a resized width x height grid (pixel-centre convention)."""
+    sx, sy = width / intrinsics.width, height / intrinsics.height
+    return dataclasses.replace(intrinsics, width=width, height=height, fx=intrinsics.fx * sx, fy=intrinsics.fy * sy,
+                               cx=(intrinsics.cx + 0.5) * sx - 0.5, cy=(intrinsics.cy + 0.5) * sy - 0.5)
+
+
+def scale_matrix(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """3x3 intrinsics matrix on a grid resized by (sx, sy), pixel-centre convention."""
+    return np.array([[K[0, 0] * sx, 0.0, (K[0, 2] + 0.5) * sx - 0.5],
+                     [0.0, K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5],
+                     [0.0, 0.0, 1.0]])
+
+
+def resize_color(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Colour resized by area averaging (bilinear when enlarging)."""
+    if (image.shape[1], image.shape[0]) == (width, height):
+        return image
+    enlarging = width > image.shape[1] or height > image.shape[0]
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_LINEAR if enlarging else cv2.INTER_AREA)
+
+
+def resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Depth resized without mixing surfaces or holes: an integer shrink takes the lower median of
+    each block's valid pixels (0 if it has none), any other size the nearest pixel to each centre."""
+    h, w = depth.shape
+    if (w, h) == (width, height):
+        return depth
+    kx, ky = w // width, h // height
+    if kx >= 1 and ky >= 1 and kx * width == w and ky * height == h and kx * ky > 1:
+        blocks = depth.reshape(height, ky, width, kx).transpose(0, 2, 1, 3).reshape(height, width, kx * ky)
+        valid = blocks > 0
+        ordered = np.sort(np.where(valid, blocks, np.inf), axis=2)
+        count = valid.sum(axis=2)
+        pick = np.take_along_axis(ordered, (np.maximum(count - 1, 0) // 2)[..., None], axis=2)[..., 0]
+        return np.where(count > 0, pick, 0.0).astype(np.float32)
+    xs = np.minimum(((np.arange(width) + 0.5) * (w / width)).astype(int), w - 1)
+    ys = np.minimum(((np.arange(height) + 0.5) * (h / height)).astype(int), h - 1)
+    return depth[np.ix_(ys, xs)]
+
+
+@dataclasses.dataclass(frozen=True)
+class Resize(FrameTransform):
+    """Colour and depth resized to width x height (``resize_color``, ``resize_depth``)."""
+
+    width: int
+    height: int
+
+    def color(self, path: Path, image: np.ndarray) -> np.ndarray:
+        return resize_color(image, self.width, self.height)
+
+    def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
+        return resize_depth(depth, self.width, self.height)
+
+
+@dataclasses.dataclass(frozen=True)
+class ResampleColor(FrameTransform):
+    """Colour taken from a camera with intrinsics ``source_K`` onto the grid of a camera at the same
+    place with ``target_K`` (width x height), e.g. a larger colour image onto the depth image's grid.
+    Shrinks by area first when the target is coarser, then warps bilinearly."""
+
+    source_K: np.ndarray
+    target_K: np.ndarray
+    width: int
+    height: int
+
+    def color(self, path: Path, image: np.ndarray) -> np.ndarray:
+        K = self.source_K
+        shrink = self.target_K[0, 0] / K[0, 0]
+        if shrink < 1.0:
+            h, w = image.shape[:2]
+            nw, nh = scaled_size(w, h, shrink)
+            image = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
+            K = scale_matrix(K, nw / w, nh / h)
+        source_of_target = (K @ np.linalg.inv(self.target_K))[:2]
+        return cv2.warpAffine(image, source_of_target, (self.width, self.height),
+                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+
+
+@dataclasses.dataclass
+class Undistort(FrameTransform):
+    """Lens distortion removed (OpenCV's model, same K before and after): colour bilinear, depth
+    nearest-neighbour (depth is registered to colour, so it shares the colour camera's distortion)."""
+
+    K: np.ndarray
+    distortion: np.ndarray
+    width: int
+    height: int
+
+    @cached_property
+    def _maps(self) -> tuple[np.ndarray, np.ndarray]:
+        return cv2.initUndistortRectifyMap(self.K, self.distortion, None, self.K, (self.width, self.height), cv2.CV_32FC1)
+
+    def color(self, path: Path, image: np.ndarray) -> np.ndarray:
+        return cv2.remap(image, *self._maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
+        return cv2.remap(depth, *self._maps, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+@dataclasses.dataclass(frozen=True)
+class MaskDepth(FrameTransform):
+    """Depth set to 0 where the frame's confidence map (8-bit PNG, same size) is below ``minimum``."""
+
+    confidence: dict[Path, Path]
+    minimum: int
+
+    def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
+        conf_path = self.confidence[path]
+        conf = cv2.imread(str(conf_path), cv2.IMREAD_UNCHANGED)
+        if conf is None or conf.ndim != 2:
+            raise InputError(conf_path, "confidence map is missing, unreadable or not single-channel",
+                             "restore it, or remove the confidence/ folder to use all depth")
+        if conf.shape != depth.shape:
+            raise InputError(conf_path, f"confidence map is {conf.shape[1]}x{conf.shape[0]}, depth {depth.shape[1]}x{depth.shape[0]}",
+                             "give confidence maps at the depth resolution")
+        return np.where(conf >= self.minimum, depth, 0.0).astype(np.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class DropDepthAbove(FrameTransform):
+    """Depth at or beyond ``limit`` metres set to 0 (a sensor's 'no reading' code, e.g. 65535 mm)."""
+
+    limit: float
+
+    def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
+        return np.where(depth >= self.limit, 0.0, depth).astype(np.float32)
+
+
+def subsample(sequence: Sequence, every: int) -> Sequence:
+    """Every ``every``-th frame of a sequence, starting with the first (timestamps kept)."""
+    if every == 1:
+        return sequence
+    cut = copy.copy(sequence)
+    for attr in ("timestamps", "rgb_paths", "depth_paths", "names", "gt_poses", "exposure_poses", "sharp_paths"):
+        value = getattr(sequence, attr)
+        setattr(cut, attr, None if value is None else value[::every])
+    cut.source = {**sequence.source, "every": every}
+    return cut
+
+
+def rescale(sequence: Sequence, scale: float) -> Sequence:
+    """A sequence read at ``scale`` times its width and height (colour by area, depth by
+    ``resize_depth``, intrinsics with the pixel-centre convention)."""
+    if scale == 1.0:
+        return sequence
+    intr = sequence.intrinsics
+    width, height = scaled_size(intr.width, intr.height, scale)
+    scaled = copy.copy(sequence)
+    scaled.intrinsics = scale_intrinsics(intr, width, height)
+    scaled.transform = then(sequence.transform, Resize(width, height))
+    scaled.source = {**sequence.source, "scale": scale}
+    return scaled
