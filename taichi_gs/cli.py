@@ -37,6 +37,8 @@ class Arch(str, Enum):
     auto = "auto"
     cpu = "cpu"
     cuda = "cuda"
+    vulkan = "vulkan"
+    metal = "metal"
 
 
 class _State:
@@ -87,7 +89,10 @@ def progress_bar(description: str, total: int) -> Iterator[Callable[..., None]]:
 @app.callback(invoke_without_command=True)
 def main(
     ctx: typer.Context,
-    arch: Annotated[Arch, typer.Option(help="Taichi backend: auto picks CUDA only if a GPU is present.")] = Arch.auto,
+    arch: Annotated[Arch, typer.Option(
+        envvar="TAICHI_GS_ARCH",
+        help="Taichi backend: auto takes CUDA, then Metal (macOS) or a hardware Vulkan GPU, then the CPU.",
+    )] = Arch.auto,
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
 ) -> None:
     """taichi-gs: reconstruct a scene from a motion-blurred RGB-D sequence."""
@@ -121,6 +126,7 @@ def info() -> None:
         "opencv": cv2.__version__,
         "arch requested": state.arch,
         "arch obtained": backend.arch,
+        "device": backend.device,
         "cpu threads": str(backend.cpu_threads),
         "kernel cache": backend.cache_dir,
     }

@@ -187,10 +187,17 @@ def _kernels(dt) -> SimpleNamespace:
 
 
 def _grown(arr, need: int, dtype, tail: tuple = ()):
-    """``arr`` if it holds ``need`` rows, else a new ndarray with 1.5x headroom."""
+    """``arr`` if it holds ``need`` rows, else a new ndarray with 1.5x headroom (less where the
+    device's per-buffer limit says so; :class:`BackendError` when ``need`` rows exceed it)."""
     if arr is not None and arr.shape[0] >= need:
         return arr
-    return ti.ndarray(dtype, (max(int(need * 1.5), 16),) + tail)
+    row_bytes = math.prod(tail) * (8 if dtype == ti.f64 else 4)
+    runtime.check_buffer(need * row_bytes, f"a rasterizer buffer of {need} x {tail or 1}")
+    rows = max(int(need * 1.5), 16)
+    backend = runtime.current()
+    if backend is not None and backend.max_buffer_bytes:
+        rows = max(need, min(rows, backend.max_buffer_bytes // row_bytes))
+    return ti.ndarray(dtype, (rows,) + tail)
 
 
 class DeviceGaussians:
@@ -208,6 +215,8 @@ class DeviceGaussians:
         if n_sh not in (1, 4, 9, 16):
             raise ValueError(f"number of SH coefficients must be 1, 4, 9 or 16, got {n_sh}")
         runtime.init()
+        if dtype == ti.f64:
+            runtime.require_f64("float64 Gaussians")
         self.n, self.n_sh, self.isotropic, self.dtype = n, n_sh, isotropic, dtype
         rows = max(n, 1)
         shapes = {
@@ -217,6 +226,8 @@ class DeviceGaussians:
             "opacity_logits": (rows,),
             "colors": (rows, n_sh, 3),
         }
+        for name, shape in shapes.items():
+            runtime.check_buffer(math.prod(shape) * (8 if dtype == ti.f64 else 4), f"Gaussian {name} {shape}")
         self.params = {k: ti.ndarray(dtype, s) for k, s in shapes.items()}
         self.grads = {k: ti.ndarray(dtype, s) for k, s in shapes.items()}
         self.params["quats"].fill(0.0)
@@ -342,6 +353,8 @@ class Rasterizer:
 
     def __init__(self, dtype=ti.f32) -> None:
         runtime.init()
+        if dtype == ti.f64:
+            runtime.require_f64("the float64 rasterizer")
         self.dtype = dtype
         self.k = _kernels(dtype)
         self.views: dict[int, View] = {}
