@@ -56,7 +56,11 @@ def scene_outputs(name: str) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     weights = [to_device(rng.normal(size=s), ti.f32) for s in ((height, width, 3), (height, width), (height, width))]
     pose = rast.backward(gs, view, *weights)
-    out = {"rgb": rgb, "depth": depth, "alpha": alpha, "pose": pose, "slots": np.array([view.n_slots])}
+    tiles = view.tiles_per_gaussian()
+    if rast.gpu is None:  # the CPU path's Gaussian-major slot offsets say the same
+        np.testing.assert_array_equal(np.diff(view.offsets.to_numpy()[: n + dense + 1]), tiles)
+    out = {"rgb": rgb, "depth": depth, "alpha": alpha, "pose": pose, "slots": np.array([view.n_slots]),
+           "tiles_per_gaussian": tiles}
     for key, value in gs.download(grads=True).items():
         if not (iso and key in ("quats", "log_scales")):  # fixed in the isotropic variant
             out[f"d_{key}"] = value
@@ -167,11 +171,58 @@ def test_forward_matches_numpy_reference(backend) -> None:
 
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_rasterizer_matches_cpu(backend, cpu_reference, name) -> None:
+    import taichi as ti
+
+    from taichi_gs.render import Rasterizer
+
+    assert Rasterizer(ti.f32).gpu is not None, "the block-per-tile kernels should run on Vulkan"
     got = scene_outputs(name)
     assert got[f"{name}/slots"][0] == cpu_reference[f"{name}/slots"][0]
     assert got[f"{name}/alpha"].max() > 0.99, "scene should reach full opacity somewhere"
     for key, value in got.items():
         check_close(key, value, cpu_reference[key])
+
+
+def test_many_tiles_scene_needs_several_batches_per_tile(backend) -> None:
+    """A tile with more than 256 records makes the blend load several shared-memory batches."""
+    import taichi as ti
+
+    sys.path.insert(0, str(TESTS))
+    import test_render as tr
+    from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
+
+    seed, n, n_sh, dense, _, width, height = SCENES["many_tiles"]
+    gs = DeviceGaussians.from_numpy(*tr.make_scene(seed, n=n, n_sh=n_sh, dense=dense))
+    K = tr.K * [[width / tr.WIDTH], [height / tr.HEIGHT], [1.0]]
+    view = Rasterizer(ti.f32).forward(gs, Camera(K, tr.POSE, width, height))
+    ranges = view.tile_range.to_numpy()[: -(-width // 16) * -(-height // 16)]
+    assert (ranges[:, 1] - ranges[:, 0]).max() > 256 and view.n_slots > 4 * 1024
+
+
+def test_prefix_sum_and_radix_sort_match_numpy(backend) -> None:
+    import taichi as ti
+
+    from taichi_gs.kernels import scan
+
+    scratch = scan.Scratch()
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 256, 257, 70_000):
+        x = rng.integers(0, 20, n).astype(np.int32)
+        src, dst = ti.ndarray(ti.i32, (max(n, 1),)), ti.ndarray(ti.i32, (n + 1,))
+        if n:
+            src.from_numpy(x)
+        scan.exclusive_scan(src, dst, n, scratch)
+        np.testing.assert_array_equal(dst.to_numpy(), np.concatenate([[0], np.cumsum(x)]))
+    for n, bits in ((3, 4), (5000, 11), (40_000, 31)):
+        keys = rng.integers(0, 2**bits, n).astype(np.int32)
+        keys[::7] = keys[0]  # many ties: the sort must be stable
+        dev_keys, dev_vals = ti.ndarray(ti.i32, (n,)), ti.ndarray(ti.i32, (n,))
+        dev_keys.from_numpy(keys)
+        dev_vals.from_numpy(np.arange(n, dtype=np.int32))
+        out_keys, out_vals = scan.radix_sort(dev_keys, dev_vals, n, bits, scratch)
+        want = np.argsort(keys, kind="stable")
+        np.testing.assert_array_equal(out_vals.to_numpy()[:n], want)
+        np.testing.assert_array_equal(out_keys.to_numpy()[:n], keys[want])
 
 
 def test_losses_blur_adam_match_cpu(backend, cpu_reference) -> None:

@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import project, rasterize, runtime, tiles
+from . import project, raster_gpu, rasterize, runtime, scan, tiles
 from .project import P_WIDTH
 from .rasterize import B_WIDTH, E_WIDTH, F_WIDTH, N_SLOT_GRADS
 from .tiles import TILE
@@ -293,6 +293,8 @@ class View:
         self.slot_gid = self.slot_tile = self.keys = self.order = self.tmp_keys = self.tmp_order = None
         self.entries = None
         self.tile_cursor = self.tile_start = None
+        self.scratch = scan.Scratch()  # the GPU path's per-view buffers (raster_gpu)
+        self.depth_order = self.tile_range = None
         self.rgb = self.depth = self.transmittance = self.last = None
         self.camera: Camera | None = None
         self.background = np.zeros(3)
@@ -310,6 +312,14 @@ class View:
             self.tile_cursor = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
             self.tile_start = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
             self.size = (width, height)
+
+    def tiles_per_gaussian(self) -> np.ndarray:
+        """How many 16x16 tiles each of the n Gaussians touched (0 when culled), from its pixel box."""
+        rect = self.rect.to_numpy()[: self.n].astype(np.int64)
+        visible = rect[:, 0] <= rect[:, 2]
+        tiles_x = rect[:, 2] // TILE - rect[:, 0] // TILE + 1
+        tiles_y = rect[:, 3] // TILE - rect[:, 1] // TILE + 1
+        return np.where(visible, tiles_x * tiles_y, 0)
 
     def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb, depth, alpha) as float32 NumPy arrays."""
@@ -352,11 +362,13 @@ class Rasterizer:
     """
 
     def __init__(self, dtype=ti.f32) -> None:
-        runtime.init()
+        backend = runtime.init()
         if dtype == ti.f64:
             runtime.require_f64("the float64 rasterizer")
         self.dtype = dtype
-        self.k = _kernels(dtype)
+        # block-per-tile kernels on GPU backends (shared memory does not compile on the CPU)
+        self.gpu = raster_gpu.GpuPipeline(dtype) if backend.gpu_kernels else None
+        self.k = None if self.gpu else _kernels(dtype)
         self.views: dict[int, View] = {}
         self._zeros: dict[tuple, ti.Ndarray] = {}
         self._scratch: dict[object, ti.Ndarray] = {}
@@ -376,6 +388,12 @@ class Rasterizer:
         width, height = int(camera.width), int(camera.height)
         n = gaussians.n
         v.ensure_images(width, height)
+        if self.gpu is not None:
+            cam, intr = camera_args(camera, self.dtype)
+            bg = ti.Vector([float(b) for b in background], dt=self.dtype)
+            self.gpu.forward(v, gaussians, cam, intr, width, height, bg, clock)
+            v.camera, v.background, v.n = camera, np.asarray(background, dtype=np.float64), n
+            return v
         v.proj = _grown(v.proj, n, self.dtype, (P_WIDTH,))
         v.rect = _grown(v.rect, n, ti.i32, (4,))
         v.offsets = _grown(v.offsets, n + 1, ti.i32)
@@ -418,6 +436,10 @@ class Rasterizer:
         d_rgb = self._zero_if_none(d_rgb, (height, width, 3))
         d_depth = self._zero_if_none(d_depth, (height, width))
         d_alpha = self._zero_if_none(d_alpha, (height, width))
+        if self.gpu is not None:
+            cam, intr = camera_args(view.camera, self.dtype)
+            bg = ti.Vector([float(b) for b in view.background], dt=self.dtype)
+            return self.gpu.backward(view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha)
         s = self._scratch
         s["slot_grad"] = _grown(s.get("slot_grad"), view.n_slots, self.dtype, (N_SLOT_GRADS,))
         s["pose_part"] = _grown(s.get("pose_part"), n, self.dtype, (6,))
