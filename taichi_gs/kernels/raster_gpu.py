@@ -31,7 +31,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import project, rasterize, scan, tiles
+from . import project, rasterize, runtime, scan, tiles
 from .project import (
     ALPHA_MIN, P_COLOR, P_CONIC_A, P_CONIC_B, P_CONIC_C, P_CUTOFF, P_DEPTH, P_MEAN_X, P_MEAN_Y, P_OPACITY, P_WIDTH,
 )
@@ -170,7 +170,7 @@ def make(dt) -> SimpleNamespace:
     def blend_backward(
         tiles_x: ti.i32, n_tiles: ti.i32, width: ti.i32, height: ti.i32, tile_range: ind(2), order: ind(1),
         entries: fnd(2), bg: vec3, out_trans: fnd(2), out_last: ind(2), d_rgb: fnd(3), d_depth: fnd(2),
-        d_alpha: fnd(2), slot_grad: fnd(2),
+        d_alpha: fnd(2), slot_grad: fnd(2), subgroup: ti.template(),
     ):
         ti.loop_config(block_dim=PIXELS)
         for i in range(n_tiles * PIXELS):
@@ -212,6 +212,8 @@ def make(dt) -> SimpleNamespace:
                 for k in range(hi - lo):
                     local = hi - 1 - k
                     r = local - lo
+                    acc = ti.Vector.zero(dt, N_SLOT_GRADS)
+                    hit = False
                     if local <= last:
                         dx = batch[r, P_MEAN_X] - (u + 0.5)
                         dy = batch[r, P_MEAN_Y] - (v + 0.5)
@@ -222,6 +224,7 @@ def make(dt) -> SimpleNamespace:
                             gauss = ti.exp(power)
                             alpha = ti.min(dt(MAX_ALPHA), opacity * gauss)
                             if alpha >= dt(ALPHA_MIN):
+                                hit = True
                                 color = vec3(batch[r, P_COLOR], batch[r, P_COLOR + 1], batch[r, P_COLOR + 2])
                                 depth = batch[r, P_DEPTH]
                                 inv_keep = 1.0 / (1.0 - alpha)  # T_i = T_{i+1} / (1 - alpha_i)
@@ -232,20 +235,31 @@ def make(dt) -> SimpleNamespace:
                                     + g_depth * (depth * trans - behind_depth * inv_keep)
                                     + g_alpha * final_trans * inv_keep
                                 )
-                                slot = batch_slot[r]
                                 for c in ti.static(range(3)):
-                                    ti.atomic_add(slot_grad[slot, 7 + c], g_rgb[c] * w)
-                                ti.atomic_add(slot_grad[slot, 5], g_depth * w)
+                                    acc[7 + c] = g_rgb[c] * w
+                                acc[5] = g_depth * w
                                 behind += color * w
                                 behind_depth += depth * w
                                 if opacity * gauss <= dt(MAX_ALPHA):
-                                    ti.atomic_add(slot_grad[slot, 6], grad_alpha * gauss)
+                                    acc[6] = grad_alpha * gauss
                                     g_power = grad_alpha * alpha
-                                    ti.atomic_add(slot_grad[slot, 0], -g_power * (ca * dx + cb * dy))
-                                    ti.atomic_add(slot_grad[slot, 1], -g_power * (cb * dx + cc * dy))
-                                    ti.atomic_add(slot_grad[slot, 2], -0.5 * g_power * dx * dx)
-                                    ti.atomic_add(slot_grad[slot, 3], -g_power * dx * dy)
-                                    ti.atomic_add(slot_grad[slot, 4], -0.5 * g_power * dy * dy)
+                                    acc[0] = -g_power * (ca * dx + cb * dy)
+                                    acc[1] = -g_power * (cb * dx + cc * dy)
+                                    acc[2] = -0.5 * g_power * dx * dx
+                                    acc[3] = -g_power * dx * dy
+                                    acc[4] = -0.5 * g_power * dy * dy
+                    slot = batch_slot[r]
+                    if ti.static(subgroup):
+                        # sum over the subgroup's pixels first: one atomic per subgroup, not per pixel
+                        if ti.simt.subgroup.reduce_max(ti.cast(hit, ti.i32)) > 0:  # any_true is a TODO in Taichi 1.7
+                            for c in ti.static(range(N_SLOT_GRADS)):
+                                acc[c] = ti.simt.subgroup.reduce_add(acc[c])
+                            if ti.simt.subgroup.elect():
+                                for c in ti.static(range(N_SLOT_GRADS)):
+                                    ti.atomic_add(slot_grad[slot, c], acc[c])
+                    elif hit:
+                        for c in ti.static(range(N_SLOT_GRADS)):
+                            ti.atomic_add(slot_grad[slot, c], acc[c])
                 sync()  # the batch is read by everyone before the next one overwrites it
 
     @ti.kernel
@@ -307,6 +321,8 @@ class GpuPipeline:
         self.dtype = dtype
         self.k = make(dtype)
         self.scratch = scan.Scratch()  # backward buffers, shared by all views
+        # Vulkan: pre-sum gradients over each subgroup (Taichi exposes subgroup ops there only)
+        self.subgroup = runtime.current().arch == "vulkan"
 
     def forward(self, view, gaussians, cam, intr, width: int, height: int, bg, clock) -> None:
         """Fill ``view``'s images and what its backward replays."""
@@ -355,7 +371,7 @@ class GpuPipeline:
         tiles_x = -(-width // TILE)
         n_tiles = tiles_x * -(-height // TILE)
         self.k.blend_backward(tiles_x, n_tiles, width, height, view.tile_range, view.order, view.entries, bg,
-                              view.transmittance, view.last, d_rgb, d_depth, d_alpha, slot_grad)
+                              view.transmittance, view.last, d_rgb, d_depth, d_alpha, slot_grad, self.subgroup)
         p, g = gaussians.params, gaussians.grads
         rows = s.get("pose_rows0", n, self.dtype, (6,))
         self.k.gaussian_backward(
