@@ -13,9 +13,12 @@ Python drives the levels and passes (a few launches each); buffers live in a :cl
 
 
 import functools
+import math
 from types import SimpleNamespace
 
 import taichi as ti
+
+from . import runtime
 
 BLOCK = 256
 LOG_BLOCK = 8
@@ -36,7 +39,13 @@ class Scratch:
     def get(self, name: str, rows: int, dtype=ti.i32, tail: tuple = ()) -> "ti.Ndarray":
         buf = self.buffers.get(name)
         if buf is None or buf.shape[0] < rows or tuple(buf.shape[1:]) != tail or buf.dtype != dtype:
-            buf = ti.ndarray(dtype, (max(int(rows * 1.25), 16),) + tail)
+            row_bytes = math.prod(tail) * (8 if dtype in (ti.f64, ti.i64) else 4)
+            runtime.check_buffer(rows * row_bytes, f"{name} ({rows} x {tail or 1})")
+            limit = runtime.current().max_buffer_bytes if runtime.current() else 0
+            size = max(int(rows * 1.25), 16)
+            if limit:
+                size = max(rows, min(size, limit // row_bytes))
+            buf = ti.ndarray(dtype, (size,) + tail)
             self.buffers[name] = buf
         return buf
 
