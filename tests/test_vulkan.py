@@ -5,7 +5,7 @@ CPU Vulkan driver, Mesa 25's lavapipe); skipped otherwise. Asking for Vulkan whe
 fails (BackendError), it never skips. The CPU side runs in a subprocess (Taichi starts one backend
 per process) and hands back the same quantities in an .npz: images, every parameter gradient and
 the pose gradient of several scenes, and the loss / blur / Adam kernels. Both sides must agree to
-1e-5 relative (per array: max |vulkan - cpu| / max |cpu|).
+1e-5 relative (per array: max |vulkan - cpu| / max |cpu|); the 640x480 scene allows threshold flips.
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ SCENES = {
     "full_sh2_dense": (3, 80, 9, 120, False, 48, 40),
     "isotropic_dc": (13, 60, 1, 40, True, 48, 40),
     "many_tiles": (21, 3000, 4, 400, False, 200, 150),
+    # 1200 tiles x 256 threads: more than Taichi's SPIR-V launches (131072), so blocks loop (grid-stride)
+    "grid_stride_640x480": (31, 1500, 1, 200, False, 640, 480),
 }
 
 
@@ -172,6 +174,13 @@ def test_forward_matches_numpy_reference(backend) -> None:
     assert tr.check_forward_matches_reference("f32") < 2e-5
 
 
+# At 640x480 some of the ~6M threshold tests (alpha >= 1/255, the 3-sigma cut-off, the 1e-4
+# transmittance stop) land within an ulp of exp's last bit, and lavapipe's exp and LLVM's differ
+# there: one Gaussian flips in or out at a pixel (measured: 2 of 307200 pixels, up to 3.4e-4). Such
+# a scene gets: all but 1e-4 of the pixels within RTOL, every pixel within 1e-3, gradients 1e-4.
+FLIP_PIXEL_SHARE, FLIP_IMAGE_TOL, FLIP_GRAD_TOL = 1e-4, 1e-3, 1e-4
+
+
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_rasterizer_matches_cpu(backend, cpu_reference, name) -> None:
     import taichi as ti
@@ -182,8 +191,14 @@ def test_rasterizer_matches_cpu(backend, cpu_reference, name) -> None:
     got = scene_outputs(name)
     assert got[f"{name}/slots"][0] == cpu_reference[f"{name}/slots"][0]
     assert got[f"{name}/alpha"].max() > 0.99, "scene should reach full opacity somewhere"
+    large = got[f"{name}/depth"].size > 100_000
     for key, value in got.items():
-        check_close(key, value, cpu_reference[key])
+        if large and key.split("/")[1] in ("rgb", "depth", "alpha"):
+            want = cpu_reference[key]
+            err = np.abs(value - want).reshape(want.shape[0], want.shape[1], -1).max(axis=2) / np.abs(want).max()
+            assert (err > RTOL).mean() <= FLIP_PIXEL_SHARE and err.max() <= FLIP_IMAGE_TOL, (key, err.max())
+        else:
+            check_close(key, value, cpu_reference[key], FLIP_GRAD_TOL if large else RTOL)
 
 
 def test_backward_without_subgroup_sums_matches_cpu(backend, cpu_reference) -> None:
@@ -215,7 +230,7 @@ def test_prefix_sum_and_radix_sort_match_numpy(backend) -> None:
 
     scratch = scan.Scratch()
     rng = np.random.default_rng(0)
-    for n in (0, 1, 256, 257, 70_000):
+    for n in (0, 1, 256, 257, 70_000, 300_000):  # 300k: grid-stride blocks on Vulkan
         x = rng.integers(0, 20, n).astype(np.int32)
         src, dst = ti.ndarray(ti.i32, (max(n, 1),)), ti.ndarray(ti.i32, (n + 1,))
         if n:
@@ -239,9 +254,9 @@ def test_losses_blur_adam_match_cpu(backend, cpu_reference) -> None:
         check_close(key, value, cpu_reference[key])
 
 
-def check_close(key: str, got: np.ndarray, want: np.ndarray) -> None:
+def check_close(key: str, got: np.ndarray, want: np.ndarray, rtol: float = RTOL) -> None:
     assert got.shape == want.shape, key
     scale = float(np.abs(want).max())
     assert scale > 0, f"{key}: the CPU reference is all zero, the comparison would prove nothing"
     err = float(np.abs(got.astype(np.float64) - want).max()) / scale
-    assert err <= RTOL, f"{key}: vulkan differs from cpu by {err:.2e} (relative to max |cpu| {scale:.3g})"
+    assert err <= rtol, f"{key}: vulkan differs from cpu by {err:.2e} (relative to max |cpu| {scale:.3g})"

@@ -115,6 +115,7 @@ def make(dt) -> SimpleNamespace:
         ti.loop_config(block_dim=PIXELS)
         for i in range(n_tiles * PIXELS):
             t, tid = i // PIXELS, i % PIXELS
+            sync()  # a block may run several iterations (grid-stride): let the last one finish
             u, v = pixel_of(t, tid, tiles_x)
             inside = u < width and v < height
             batch = ti.simt.block.SharedArray((PIXELS, P_WIDTH), dt)
@@ -175,6 +176,7 @@ def make(dt) -> SimpleNamespace:
         ti.loop_config(block_dim=PIXELS)
         for i in range(n_tiles * PIXELS):
             t, tid = i // PIXELS, i % PIXELS
+            sync()  # a block may run several iterations (grid-stride): let the last one finish
             u, v = pixel_of(t, tid, tiles_x)
             inside = u < width and v < height
             batch = ti.simt.block.SharedArray((PIXELS, P_WIDTH), dt)
@@ -290,6 +292,7 @@ def make(dt) -> SimpleNamespace:
         ti.loop_config(block_dim=POSE_BLOCK)
         for i in range(((n + POSE_BLOCK - 1) // POSE_BLOCK) * POSE_BLOCK):
             tid = i % POSE_BLOCK
+            sync()  # a block may run several iterations (grid-stride): let the last one finish
             buf = ti.simt.block.SharedArray((POSE_BLOCK, 6), dt)
             for c in ti.static(range(6)):
                 buf[tid, c] = 0.0

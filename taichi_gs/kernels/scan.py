@@ -61,6 +61,7 @@ def _kernels() -> SimpleNamespace:
         ti.loop_config(block_dim=BLOCK)
         for i in range(n_blocks * BLOCK):
             tid = i % BLOCK
+            sync()  # a block may run several iterations (grid-stride): let the last one finish
             buf = ti.simt.block.SharedArray((2 * BLOCK,), ti.i32)
             x = 0
             if i < n:
@@ -90,6 +91,7 @@ def _kernels() -> SimpleNamespace:
         ti.loop_config(block_dim=BLOCK)
         for i in range(n_blocks * BLOCK):
             tid = i % BLOCK
+            sync()  # a block may run several iterations (grid-stride): let the last one finish
             b = i // BLOCK
             hist = ti.simt.block.SharedArray((RADIX,), ti.i32)
             hist[tid] = 0
@@ -108,6 +110,7 @@ def _kernels() -> SimpleNamespace:
         ti.loop_config(block_dim=BLOCK)
         for i in range(n_blocks * BLOCK):
             tid = i % BLOCK
+            sync()  # a block may run several iterations (grid-stride): let the last one finish
             b = i // BLOCK
             digits = ti.simt.block.SharedArray((BLOCK,), ti.i32)
             running = ti.simt.block.SharedArray((RADIX,), ti.i32)
