@@ -201,6 +201,17 @@ def test_rasterizer_matches_cpu(backend, cpu_reference, name) -> None:
             check_close(key, value, cpu_reference[key], FLIP_GRAD_TOL if large else RTOL)
 
 
+@pytest.mark.parametrize("check", ["test_empty_scene", "test_all_gaussians_culled_renders_background",
+                                   "test_rgb_colours_are_sh_dc_and_result_shapes",
+                                   "test_device_api_views_accumulate_gradients"])
+def test_render_checks_in_f32_on_vulkan(backend, check) -> None:
+    """tests/test_render.py's float32 checks (empty and fully culled scenes, shapes, several views)."""
+    sys.path.insert(0, str(TESTS))
+    import test_render as tr
+
+    getattr(tr, check)()
+
+
 def test_backward_without_subgroup_sums_matches_cpu(backend, cpu_reference) -> None:
     """The per-pixel atomic backward that CUDA and Metal run (no Taichi subgroup ops there)."""
     for key, value in scene_outputs("many_tiles", subgroup=False).items():
