@@ -22,14 +22,16 @@ _vk_main() {
     apt="$gl/apt"
     icd="$gl/lvp_icd.json"
     lib="$root/usr/lib/x86_64-linux-gnu"
-    if [ ! -f "$icd" ] || [ ! -f "$lib/libvulkan_lvp.so" ]; then
+    command -v apt-get >/dev/null && command -v dpkg >/dev/null \
+        || { echo "vulkan.sh: needs Debian's apt-get and dpkg (bookworm); install a Vulkan driver by hand" >&2; return 1; }
+    if ! dpkg -s libvulkan1 mesa-vulkan-drivers >/dev/null 2>&1; then
         sudo=""
         [ "$(id -u)" = 0 ] || sudo="sudo"
-        if ! dpkg -s libvulkan1 mesa-vulkan-drivers >/dev/null 2>&1; then
-            $sudo apt-get -o DPkg::Lock::Timeout=300 update -qq || return 1
-            DEBIAN_FRONTEND=noninteractive $sudo apt-get -o DPkg::Lock::Timeout=300 install -y -qq \
-                --no-install-recommends mesa-vulkan-drivers libvulkan1 >/dev/null || return 1
-        fi
+        $sudo apt-get -o DPkg::Lock::Timeout=300 update -qq || return 1
+        DEBIAN_FRONTEND=noninteractive $sudo apt-get -o DPkg::Lock::Timeout=300 install -y -qq \
+            --no-install-recommends mesa-vulkan-drivers libvulkan1 >/dev/null || return 1
+    fi
+    if [ ! -f "$icd" ] || [ ! -f "$lib/libvulkan_lvp.so" ]; then
         # the main Debian archive URI of this machine (deb822 or one-line sources)
         uri="$(grep -rhoE '^URIs:[[:space:]]*[^ ]+/debian/?$' /etc/apt/sources.list.d/*.sources 2>/dev/null \
                | head -n1 | awk '{print $2}')"
