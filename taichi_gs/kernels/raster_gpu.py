@@ -342,15 +342,15 @@ class GpuPipeline:
         _, view.depth_order = scan.radix_sort(keys, ids, n, DEPTH_KEY_BITS, s, "depth_sort")
         counts = s.get("counts", n)
         self.k.count_tiles(n, view.depth_order, view.rect, counts)
-        view.offsets = s.get("offsets", n + 1)
-        scan.exclusive_scan(counts, view.offsets, n, s)
-        n_slots = int(view.offsets[n])
+        view.depth_offsets = s.get("offsets", n + 1)
+        scan.exclusive_scan(counts, view.depth_offsets, n, s)
+        n_slots = int(view.depth_offsets[n])
         clock("project")
         tiles_x = -(-width // TILE)
         n_tiles = tiles_x * -(-height // TILE)
         tile_keys, slot_ids, view.slot_gid = s.get("tile_keys", n_slots), s.get("slot_ids", n_slots), \
             s.get("slot_gid", n_slots)
-        self.k.emit_slots(n, tiles_x, view.depth_order, view.rect, view.offsets, tile_keys, slot_ids, view.slot_gid)
+        self.k.emit_slots(n, tiles_x, view.depth_order, view.rect, view.depth_offsets, tile_keys, slot_ids, view.slot_gid)
         tile_bits = max(1, int(n_tiles - 1).bit_length())
         sorted_tiles, view.order = scan.radix_sort(tile_keys, slot_ids, n_slots, tile_bits, s, "tile_sort")
         view.tile_range = s.get("tile_range", n_tiles, ti.i32, (2,))
@@ -380,7 +380,7 @@ class GpuPipeline:
         self.k.gaussian_backward(
             n, gaussians.n_sh, width, height, cam, intr,
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
-            view.depth_order, view.offsets, slot_grad,
+            view.depth_order, view.depth_offsets, slot_grad,
             g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["colors"], rows, gaussians.isotropic,
         )
         if n == 0:

@@ -9,6 +9,8 @@ Per forward: three kernel launches (project + per-Gaussian slot offsets; binning
 sort + gather of tile-ordered records; blending) and one scalar read of the intersection count to
 size buffers (grown geometrically, never shrunk; ndarray arguments never trigger recompiles).
 Per backward: one launch (tile replay, per-Gaussian reduction + projection backward, pose sum).
+That is the CPU path (one thread per tile); on GPU backends the Rasterizer hands both passes to
+:class:`~taichi_gs.kernels.raster_gpu.GpuPipeline` (block per tile, thread per pixel).
 """
 
 import functools
@@ -294,7 +296,7 @@ class View:
         self.entries = None
         self.tile_cursor = self.tile_start = None
         self.scratch = scan.Scratch()  # the GPU path's per-view buffers (raster_gpu)
-        self.depth_order = self.tile_range = None
+        self.depth_order = self.depth_offsets = self.tile_range = None
         self.rgb = self.depth = self.transmittance = self.last = None
         self.camera: Camera | None = None
         self.background = np.zeros(3)
