@@ -163,8 +163,17 @@ def test_f64_is_refused_with_a_clear_error(backend) -> None:
 
     from taichi_gs.render import Rasterizer
 
+    from taichi_gs.render import DeviceGaussians, rasterize, to_device
+
     with pytest.raises(BackendError, match="CPU or CUDA"):
         Rasterizer(ti.f64)
+    with pytest.raises(BackendError, match="CPU or CUDA"):
+        DeviceGaussians(4, dtype=ti.f64)
+    with pytest.raises(BackendError, match="CPU or CUDA"):
+        to_device(np.zeros(3), ti.f64)
+    with pytest.raises(BackendError, match="CPU or CUDA"):
+        rasterize(np.zeros((1, 3)), np.ones((1, 4)), np.zeros((1, 3)), np.zeros(1), np.zeros((1, 3)),
+                  np.eye(3), np.eye(4), 8, 8, precision="f64")
 
 
 def test_forward_matches_numpy_reference(backend) -> None:

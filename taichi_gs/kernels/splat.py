@@ -44,6 +44,8 @@ def float_type(precision: str):
 
 def to_device(arr: np.ndarray, dtype) -> ti.Ndarray:
     """A new ndarray of Taichi float type ``dtype`` holding ``arr``."""
+    if dtype == ti.f64:
+        runtime.require_f64("float64 arrays")
     arr = np.ascontiguousarray(arr, dtype=np_dtype(dtype))
     nd = ti.ndarray(dtype, arr.shape)
     nd.from_numpy(arr)
