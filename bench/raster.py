@@ -2,7 +2,9 @@
 sizes and resolutions, a per-phase breakdown, and the NumPy reference renderer on a small scene
 in the same run (so the speed ratio survives a noisy, shared machine).
 
-    /work/venv/bin/python bench/raster.py [--arch cpu|cuda] [--quick]
+    /work/venv/bin/python bench/raster.py [--arch cpu|cuda|vulkan|metal|auto] [--quick] [--combo N:WxH ...]
+
+On a GPU backend the grid is 100k / 500k / 1M Gaussians at 640x480 (the GPU targets).
 """
 
 from __future__ import annotations
@@ -26,6 +28,14 @@ RESOLUTIONS = ((160, 120), (320, 240), (640, 480))
 # The performance targets: forward+backward under 20 ms and under 400 ms on 2 CPU cores.
 TARGETS = ((5_000, (160, 120)), (100_000, (320, 240)))
 QUICK = ((50_000, (320, 240)), (200_000, (640, 480)))
+GPU_GRID = ((100_000, (640, 480)), (500_000, (640, 480)), (1_000_000, (640, 480)))
+
+
+def parse_combo(text: str) -> tuple[int, tuple[int, int]]:
+    """"50000:320x240" -> (50000, (320, 240))."""
+    n, res = text.split(":")
+    w, h = res.lower().split("x")
+    return int(n), (int(w), int(h))
 
 
 def scene(n: int, width: int, height: int, seed: int = 0):
@@ -66,8 +76,10 @@ def median_time(fn, repeats: int) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--arch", default="cpu", choices=("cpu", "cuda"))
+    parser.add_argument("--arch", default="cpu", choices=runtime.ARCH_CHOICES)
     parser.add_argument("--quick", action="store_true", help="only the target and a few large combos")
+    parser.add_argument("--combo", action="append", type=parse_combo, default=[],
+                        help="N:WxH to run instead of the grid (repeatable), e.g. 5000:160x120")
     args = parser.parse_args()
     backend = runtime.init(args.arch)
 
@@ -77,15 +89,20 @@ def main() -> None:
     from taichi_gs.kernels.splat import to_device
     from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
 
-    print(f"# {datetime.date.today()}  arch={backend.arch}  cpu threads={backend.cpu_threads}  "
-          f"cpu {cpu_model()}  python {platform.python_version()}")
+    print(f"# {datetime.date.today()}  arch={backend.arch}  device {backend.device}  "
+          f"cpu threads={backend.cpu_threads}  cpu {cpu_model()}  python {platform.python_version()}")
     print("# times in ms, median after warm-up; SH degree 0; cover = mean number of Gaussian support "
           "boxes per pixel")
     rast = Rasterizer(ti.f32)
     print(f"{'N':>8} {'res':>8} {'slots':>9} {'fwd ms':>8} {'fwd+bwd ms':>11} {'project':>8} {'sort':>7} "
           f"{'blend':>7} {'backward':>9} {'cover':>6}")
     grid = [(n, res) for n in SIZES for res in RESOLUTIONS]
-    combos = sorted(set(TARGETS) | set(QUICK if args.quick else grid))
+    if args.combo:
+        combos = sorted(set(args.combo))
+    elif backend.gpu_kernels:
+        combos = sorted(set(GPU_GRID))
+    else:
+        combos = sorted(set(TARGETS) | set(QUICK if args.quick else grid))
     for n, (width, height) in combos:
         params, K = scene(n, width, height)
         gs = DeviceGaussians.from_numpy(*params)

@@ -40,6 +40,8 @@ class Arch(str, Enum):
     auto = "auto"
     cpu = "cpu"
     cuda = "cuda"
+    vulkan = "vulkan"
+    metal = "metal"
 
 
 def _fail(message: str, code: int) -> None:
@@ -84,7 +86,10 @@ def _os_error_message(err: OSError) -> str:
 @app.callback(invoke_without_command=True)
 def main(
     ctx: typer.Context,
-    arch: Annotated[Arch, typer.Option(help="Taichi backend: auto picks CUDA only if a GPU is present.")] = Arch.auto,
+    arch: Annotated[Arch, typer.Option(
+        envvar="TAICHI_GS_ARCH",
+        help="Taichi backend: auto takes CUDA, then Metal (macOS) or a hardware Vulkan GPU, then the CPU.",
+    )] = Arch.auto,
     version: Annotated[bool, typer.Option("--version", help="Print the version and exit.")] = False,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only warnings and errors (OUT/log.txt still gets everything).")] = False,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Also print debug messages, and a progress line per step when not on a terminal.")] = False,
@@ -125,6 +130,7 @@ def info() -> None:
         "opencv": cv2.__version__,
         "arch requested": state.arch,
         "arch obtained": backend.arch,
+        "device": backend.device,
         "cpu threads": str(backend.cpu_threads),
         "kernel cache": backend.cache_dir,
     }

@@ -9,6 +9,8 @@ Per forward: three kernel launches (project + per-Gaussian slot offsets; binning
 sort + gather of tile-ordered records; blending) and one scalar read of the intersection count to
 size buffers (grown geometrically, never shrunk; ndarray arguments never trigger recompiles).
 Per backward: one launch (tile replay, per-Gaussian reduction + projection backward, pose sum).
+That is the CPU path (one thread per tile); on GPU backends the Rasterizer hands both passes to
+:class:`~taichi_gs.kernels.raster_gpu.GpuPipeline` (block per tile, thread per pixel).
 """
 
 import functools
@@ -20,7 +22,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import project, rasterize, runtime, tiles
+from . import project, raster_gpu, rasterize, runtime, scan, tiles
 from .project import P_WIDTH
 from .rasterize import B_WIDTH, E_WIDTH, F_WIDTH, N_SLOT_GRADS
 from .tiles import TILE
@@ -42,6 +44,8 @@ def float_type(precision: str):
 
 def to_device(arr: np.ndarray, dtype) -> ti.Ndarray:
     """A new ndarray of Taichi float type ``dtype`` holding ``arr``."""
+    if dtype == ti.f64:
+        runtime.require_f64("float64 arrays")
     arr = np.ascontiguousarray(arr, dtype=np_dtype(dtype))
     nd = ti.ndarray(dtype, arr.shape)
     nd.from_numpy(arr)
@@ -187,10 +191,17 @@ def _kernels(dt) -> SimpleNamespace:
 
 
 def _grown(arr, need: int, dtype, tail: tuple = ()):
-    """``arr`` if it holds ``need`` rows, else a new ndarray with 1.5x headroom."""
+    """``arr`` if it holds ``need`` rows, else a new ndarray with 1.5x headroom (less where the
+    device's per-buffer limit says so; :class:`BackendError` when ``need`` rows exceed it)."""
     if arr is not None and arr.shape[0] >= need:
         return arr
-    return ti.ndarray(dtype, (max(int(need * 1.5), 16),) + tail)
+    row_bytes = math.prod(tail) * (8 if dtype == ti.f64 else 4)
+    runtime.check_buffer(need * row_bytes, f"a rasterizer buffer of {need} x {tail or 1}")
+    rows = max(int(need * 1.5), 16)
+    backend = runtime.current()
+    if backend is not None and backend.max_buffer_bytes:
+        rows = max(need, min(rows, backend.max_buffer_bytes // row_bytes))
+    return ti.ndarray(dtype, (rows,) + tail)
 
 
 class DeviceGaussians:
@@ -208,6 +219,8 @@ class DeviceGaussians:
         if n_sh not in (1, 4, 9, 16):
             raise ValueError(f"number of SH coefficients must be 1, 4, 9 or 16, got {n_sh}")
         runtime.init()
+        if dtype == ti.f64:
+            runtime.require_f64("float64 Gaussians")
         self.n, self.n_sh, self.isotropic, self.dtype = n, n_sh, isotropic, dtype
         rows = max(n, 1)
         shapes = {
@@ -217,6 +230,8 @@ class DeviceGaussians:
             "opacity_logits": (rows,),
             "colors": (rows, n_sh, 3),
         }
+        for name, shape in shapes.items():
+            runtime.check_buffer(math.prod(shape) * (8 if dtype == ti.f64 else 4), f"Gaussian {name} {shape}")
         self.params = {k: ti.ndarray(dtype, s) for k, s in shapes.items()}
         self.grads = {k: ti.ndarray(dtype, s) for k, s in shapes.items()}
         self.params["quats"].fill(0.0)
@@ -282,6 +297,8 @@ class View:
         self.slot_gid = self.slot_tile = self.keys = self.order = self.tmp_keys = self.tmp_order = None
         self.entries = None
         self.tile_cursor = self.tile_start = None
+        self.scratch = scan.Scratch()  # the GPU path's per-view buffers (raster_gpu)
+        self.depth_order = self.depth_offsets = self.tile_range = None
         self.rgb = self.depth = self.transmittance = self.last = None
         self.camera: Camera | None = None
         self.background = np.zeros(3)
@@ -299,6 +316,14 @@ class View:
             self.tile_cursor = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
             self.tile_start = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
             self.size = (width, height)
+
+    def tiles_per_gaussian(self) -> np.ndarray:
+        """How many 16x16 tiles each of the n Gaussians touched (0 when culled), from its pixel box."""
+        rect = self.rect.to_numpy()[: self.n].astype(np.int64)
+        visible = rect[:, 0] <= rect[:, 2]
+        tiles_x = rect[:, 2] // TILE - rect[:, 0] // TILE + 1
+        tiles_y = rect[:, 3] // TILE - rect[:, 1] // TILE + 1
+        return np.where(visible, tiles_x * tiles_y, 0)
 
     def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb, depth, alpha) as float32 NumPy arrays."""
@@ -341,9 +366,13 @@ class Rasterizer:
     """
 
     def __init__(self, dtype=ti.f32) -> None:
-        runtime.init()
+        backend = runtime.init()
+        if dtype == ti.f64:
+            runtime.require_f64("the float64 rasterizer")
         self.dtype = dtype
-        self.k = _kernels(dtype)
+        # block-per-tile kernels on GPU backends (shared memory does not compile on the CPU)
+        self.gpu = raster_gpu.GpuPipeline(dtype) if backend.gpu_kernels else None
+        self.k = None if self.gpu else _kernels(dtype)
         self.views: dict[int, View] = {}
         self._zeros: dict[tuple, ti.Ndarray] = {}
         self._scratch: dict[object, ti.Ndarray] = {}
@@ -363,6 +392,12 @@ class Rasterizer:
         width, height = int(camera.width), int(camera.height)
         n = gaussians.n
         v.ensure_images(width, height)
+        if self.gpu is not None:
+            cam, intr = camera_args(camera, self.dtype)
+            bg = ti.Vector([float(b) for b in background], dt=self.dtype)
+            self.gpu.forward(v, gaussians, cam, intr, width, height, bg, clock)
+            v.camera, v.background, v.n = camera, np.asarray(background, dtype=np.float64), n
+            return v
         v.proj = _grown(v.proj, n, self.dtype, (P_WIDTH,))
         v.rect = _grown(v.rect, n, ti.i32, (4,))
         v.offsets = _grown(v.offsets, n + 1, ti.i32)
@@ -405,6 +440,10 @@ class Rasterizer:
         d_rgb = self._zero_if_none(d_rgb, (height, width, 3))
         d_depth = self._zero_if_none(d_depth, (height, width))
         d_alpha = self._zero_if_none(d_alpha, (height, width))
+        if self.gpu is not None:
+            cam, intr = camera_args(view.camera, self.dtype)
+            bg = ti.Vector([float(b) for b in view.background], dt=self.dtype)
+            return self.gpu.backward(view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha)
         s = self._scratch
         s["slot_grad"] = _grown(s.get("slot_grad"), view.n_slots, self.dtype, (N_SLOT_GRADS,))
         s["pose_part"] = _grown(s.get("pose_part"), n, self.dtype, (6,))
