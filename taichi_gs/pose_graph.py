@@ -31,6 +31,9 @@ class Edge:
     transform: np.ndarray  # camera source -> camera target
     information: np.ndarray  # 6 x 6, [translation, rotation], in the target camera
     kind: str = "odometry"  # odometry | skip | loop
+    estimate: str = ""  # how the transform was obtained (recorded, not used)
+    score: float = float("nan")  # its verification score (recorded, not used)
+    weak: bool = False
     weight: float = 1.0  # final robust weight (set by optimise)
     pruned: bool = False  # final weight below the prune threshold (set by optimise)
 
