@@ -205,7 +205,7 @@ def main() -> None:
                 poses = result.poses
                 if method == "ours":
                     ours = result
-            elif method in DERIVED:
+            elif method in DERIVED or method.startswith("cand:"):
                 if ours is None:
                     continue
                 poses, seconds, extra = derived(ours, method), None, "-"
