@@ -203,6 +203,7 @@ class PoseResult:
     pairs: list[dict]
     paths: dict[str, Path] = field(default_factory=dict)
     edges: list[dict] = field(default_factory=list)  # pose-graph edges (empty without the graph)
+    graph_seconds: float = 0.0  # extra edges and optimisation
 
     def summary(self) -> str:
         weak = sum(1 for p in self.pairs if p["weak"])
@@ -521,9 +522,11 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     poses = chain_poses([r.transform for r in relatives])
     pairs = [_pair_record(k, sequence.names, r) for k, r in enumerate(relatives)]
     edges: list[Edge] = []
+    graph_start = time.perf_counter()
     if config.pose_graph:
         poses, edges = refine_with_graph(sequence, relatives, poses, config)
-    result = PoseResult(poses, pairs, edges=[_edge_record(e) for e in edges])
+    result = PoseResult(poses, pairs, edges=[_edge_record(e) for e in edges],
+                        graph_seconds=time.perf_counter() - graph_start)
     paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
     write_tum(paths["trajectory"], np.asarray(sequence.timestamps), poses, header="taichi-gs stage 1, camera-to-world")
     write_text(paths["pairs"], json.dumps({"summary": result.summary(), "pairs": pairs, "edges": result.edges}, indent=1) + "\n")
