@@ -1,22 +1,25 @@
-"""Benchmark stage 1 (local pose) on synthetic blurred sequences against Open3D baselines.
+"""Benchmark stage 1 (local pose) against classical peers on synthetic and real sequences, in one run.
 
-    python bench/pose.py [--quick] [--frames 16] [--turn-frames 40] [--out /tmp/bench_pose]
-    python bench/pose.py --sequence FOLDER [--sequence FOLDER ...]   # any sequence with ground truth
+    python bench/pose.py [--frames 60] [--size 320x240] [--trajectories handheld,turn,translation]
+                         [--seeds 0,1,2] [--real-every 1,2,3] [--real-scale 0.5] [--methods ...] [--out DIR]
+    python bench/pose.py --sequence FOLDER [--sequence FOLDER ...]   # any folders with ground truth
 
-The synthetic ``turn`` makes one full 360-degree turn over however many frames it is generated with,
-so its rate is set apart from the benchmarked length: it is generated with ``--turn-frames`` frames
-(40: 9 deg per frame, 270 deg/s at 30 fps, a fast hand-held pan) and its first ``--frames`` are used.
+Sequences: ``taichi_gs.synth`` (extreme blur) for every trajectory kind and seed, and the 7-Scenes
+RedKitchen slice of ../shared/data (``bench/realdata.py``) at every 1st, 2nd, 3rd frame.
 
-Methods, each chaining relative poses t -> t+1 from identity:
-- ours: the stage as shipped (DIS medium flow, L_F then L_F + 75 L_I + 25 L_C, then ICP)
-- ours no-L_C: depth-consistency weight 0
-- ours flow-only: no ICP (the solver's estimate)
-- ours no seeded retry: weak pairs are not redone with DIS seeded by the constant-velocity prior
-- ours + RGB-D refine: Open3D's hybrid RGB-D odometry as a last step, started from the ICP estimate
-- ours DIS-ultrafast / GT-flow: flow quality (GT flow from the exact sharp depth and GT motion)
-- ICP only: the same multi-scale point-to-plane ICP, started from identity
-- O3D hybrid: open3d compute_rgbd_odometry, RGBDOdometryJacobianFromHybridTerm, levels [20, 10, 5]
-Prints a Markdown table: ATE (m), RPE translation (m), RPE rotation (deg), seconds per pair.
+Methods (each from identity at frame 0):
+- ours: the stage as shipped (verified candidates + robust pose graph)
+- ours no graph: the same run's verified pairs, chained (graph ablation, no extra cost)
+- ours no verify: the flow -> ICP -> RGB-D odometry path behind the method's guards, no graph
+- method: the paper's path only (flow solve, then point-to-plane ICP), chained
+- cand:NAME: one candidate of ours' run (flow, icp, icp-prior, rgbd-icp, ...), chained (verification ablation)
+- O3D hybrid: Open3D compute_rgbd_odometry (hybrid term, levels 20/10/5), pairs chained
+- O3D ICP: multi-scale point-to-plane ICP (the stage's settings) from identity, chained
+- O3D dense SLAM: Open3D's tensor frame-to-model tracking (voxel hashing, raycast), CPU
+- DIS RANSAC: OpenCV DIS flow + depth -> 3D matches -> RANSAC Kabsch fit, chained
+
+Prints one Markdown row per sequence and method: ATE, RPE translation and rotation (RMSE), per-pair
+translation error p50 / p90 / max (mm), weak pairs, pruned graph edges, seconds per pair (wall).
 """
 
 from __future__ import annotations
@@ -24,151 +27,233 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import sys
 import tempfile
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from taichi_gs.evaluate import ate, rpe
-from taichi_gs.flow import rigid_flow, write_flow
-from taichi_gs.geometry import invert
+from taichi_gs.flow import dis_flow, to_gray_u8
+from taichi_gs.geometry import backproject, invert
 from taichi_gs.icp import depth_cloud, multiscale_point_to_plane, reliable_depth_mask, rgbd_odometry
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.stages.pose import PoseConfig, chain_poses, run_pose
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from realdata import convert_7scenes  # noqa: E402
+
+SEVEN_SCENES = Path("/work/shared/data/7scenes_redkitchen_000-249")
+METHOD_ONLY = {"verify": False, "rgbd_refine": False, "icp_from_prior": False, "pose_graph": False, "icp_max_points": 80000}
 OURS = {
     "ours": {},
-    "ours no-L_C": {"depth_consistency_weight": 0.0},
-    "ours flow-only (no ICP)": {"use_icp": False},
-    "ours no seeded retry": {"seeded_retry": False},
-    "ours + RGB-D refine": {"rgbd_refine": True},
-    "ours DIS-ultrafast": {"flow_preset": "ultrafast"},
-    "ours GT-flow": {"flow_dir": "GT"},
+    "ours no verify": {"verify": False, "pose_graph": False},
+    "method": METHOD_ONLY,
 }
+DERIVED = ("ours no graph", "cand:flow", "cand:icp", "cand:rgbd-icp")
 
 
-def gt_flows(sequence, depths: list[np.ndarray], folder: Path) -> None:
-    """Flows implied by ground-truth motion and noise-free depth, forward and backward, as .npy per pair."""
-    K, poses = sequence.intrinsics.K(), sequence.gt_poses
-    for k in range(len(poses) - 1):
-        for a, b, tag in ((k, k + 1, ""), (k + 1, k, "_backward")):
-            write_flow(folder / f"{k:06d}{tag}.npy", rigid_flow(depths[a], K, invert(poses[b]) @ poses[a]))
-
-
-def run_ours(sequence, overrides: dict, flow_dir: Path, work: Path) -> tuple[np.ndarray, float, str]:
-    if overrides.get("flow_dir") == "GT":
-        overrides = {**overrides, "flow_dir": str(flow_dir)}
+def run_ours(sequence, overrides: dict, work: Path):
     config = dataclasses.replace(PoseConfig(), **overrides)
-    result = run_pose(sequence, work, config)
+    result = run_pose(sequence, work, config)  # pairs are cached: time = pairs' own seconds + the graph's
+    seconds = float(np.mean([p["seconds"] for p in result.pairs])) + result.graph_seconds / (len(sequence) - 1)
     weak = sum(p["weak"] for p in result.pairs)
-    seeded = sum(p["flow_seed"] != "none" for p in result.pairs)
-    return result.poses, float(np.mean([p["seconds"] for p in result.pairs])), f"{weak} ({seeded} seeded)"
+    pruned = sum(e["pruned"] for e in result.edges)
+    extra = f"{weak} / {pruned} of {len(result.edges)}" if result.edges else f"{weak} / -"
+    return result, seconds, extra
 
 
-def run_icp_only(sequence, config: PoseConfig) -> tuple[np.ndarray, float, str]:
+def derived(result, name: str) -> np.ndarray:
+    """Chained poses of ours' pair transforms (``ours no graph``) or of one candidate per pair
+    (the chosen transform where that candidate is missing)."""
+    relatives = []
+    for pair in result.pairs:
+        candidate = pair.get("candidates", {}).get(name[5:]) if name.startswith("cand:") else None
+        relatives.append(np.array((candidate or pair)["transform"]))
+    return chain_poses(relatives)
+
+
+def run_icp(sequence, config: PoseConfig = PoseConfig(icp_max_points=80000)):
     K = sequence.intrinsics.K()
-    relatives, seconds = [], []
+    relatives, start = [], time.perf_counter()
     for k in range(len(sequence) - 1):
-        start = time.perf_counter()
         clouds = []
         for i in (k, k + 1):
             depth = sequence.depth(i)
             clouds.append(depth_cloud(depth, K, reliable_depth_mask(depth, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)))
-        result = multiscale_point_to_plane(
+        relatives.append(multiscale_point_to_plane(
             clouds[0], clouds[1], np.eye(4), tuple(s * config.icp_voxel_m for s in config.icp_scales), config.icp_iterations,
-            config.icp_distance_factor, config.icp_normal_radius_factor, config.icp_normal_max_nn, config.icp_max_points)
-        relatives.append(result.transform)
-        seconds.append(time.perf_counter() - start)
-    return chain_poses(relatives), float(np.mean(seconds)), "-"
+            config.icp_distance_factor, config.icp_normal_radius_factor, config.icp_normal_max_nn, config.icp_max_points).transform)
+    return chain_poses(relatives), (time.perf_counter() - start) / (len(sequence) - 1), "-"
 
 
-def run_open3d_hybrid(sequence) -> tuple[np.ndarray, float, str]:
-    """Open3D's RGB-D odometry (hybrid term, levels [20, 10, 5]) per pair from identity; failures count identity."""
+def run_hybrid(sequence):
     K = sequence.intrinsics.K()
-    relatives, seconds, failed = [], [], 0
+    relatives, failed, start = [], 0, time.perf_counter()
     for k in range(len(sequence) - 1):
-        start = time.perf_counter()
         T = rgbd_odometry(sequence.color(k), sequence.depth(k), sequence.color(k + 1), sequence.depth(k + 1), K, np.eye(4))
         failed += T is None
         relatives.append(np.eye(4) if T is None else T)
-        seconds.append(time.perf_counter() - start)
-    return chain_poses(relatives), float(np.mean(seconds)), str(failed)
+    return chain_poses(relatives), (time.perf_counter() - start) / (len(sequence) - 1), f"{failed} failed"
 
 
-def evaluate(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float, float]:
+def run_dis_ransac(sequence, iterations: int = 300, inlier_m: float = 0.02, seed: int = 0):
+    """DIS flow + depth: 3D-3D matches, RANSAC over 3-point Kabsch fits, refit on the inliers."""
+    K = sequence.intrinsics.K()
+    rng = np.random.default_rng(seed)
+    relatives, start = [], time.perf_counter()
+    for k in range(len(sequence) - 1):
+        d0, d1 = sequence.depth(k), sequence.depth(k + 1)
+        flow = dis_flow(to_gray_u8(sequence.color(k)), to_gray_u8(sequence.color(k + 1)), "medium")
+        h, w = d0.shape
+        v, u = np.mgrid[0:h:2, 0:w:2]
+        u1 = np.round(u + flow[v, u, 0]).astype(int)
+        v1 = np.round(v + flow[v, u, 1]).astype(int)
+        ok = (d0[v, u] > 0) & (u1 >= 0) & (u1 < w) & (v1 >= 0) & (v1 < h)
+        u, v, u1, v1 = u[ok], v[ok], u1[ok], v1[ok]
+        ok = d1[v1, u1] > 0
+        a = backproject(d0, K)[v[ok], u[ok]]
+        b = backproject(d1, K)[v1[ok], u1[ok]]
+        best = np.zeros(len(a), bool)
+        for _ in range(iterations if len(a) >= 3 else 0):
+            pick = rng.choice(len(a), 3, replace=False)
+            T = kabsch(a[pick], b[pick])
+            inliers = np.linalg.norm(a @ T[:3, :3].T + T[:3, 3] - b, axis=1) < inlier_m
+            if inliers.sum() > best.sum():
+                best = inliers
+        relatives.append(kabsch(a[best], b[best]) if best.sum() >= 3 else np.eye(4))
+    return chain_poses(relatives), (time.perf_counter() - start) / (len(sequence) - 1), "-"
+
+
+def kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rigid T minimising |T a - b|^2."""
+    ca, cb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    T = np.eye(4)
+    T[:3, :3] = Vt.T @ D @ U.T
+    T[:3, 3] = cb - T[:3, :3] @ ca
+    return T
+
+
+def run_dense_slam(sequence, voxel: float = 0.01, depth_max: float = 5.0):
+    """Open3D's dense RGB-D SLAM (frame-to-model tracking on a TSDF voxel-hash map) on the CPU."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    device = o3c.Device("CPU:0")
+    K = o3c.Tensor(sequence.intrinsics.K(), o3c.float64)
+    T = o3c.Tensor(np.eye(4), o3c.float64)
+    model = o3d.t.pipelines.slam.Model(voxel, 16, 40000, T, device)
+    h, w = sequence.depth(0).shape
+    frame, raycast = o3d.t.pipelines.slam.Frame(h, w, K, device), o3d.t.pipelines.slam.Frame(h, w, K, device)
+    poses, start = [], time.perf_counter()
+    for i in range(len(sequence)):
+        depth = np.round(sequence.depth(i) * 1000.0).astype(np.uint16)
+        color = np.ascontiguousarray(np.clip(sequence.color(i) * 255, 0, 255).astype(np.uint8))
+        frame.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(depth)))
+        frame.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(color)))
+        if i > 0:
+            result = model.track_frame_to_model(frame, raycast, 1000.0, depth_max, 0.07)
+            T = T @ result.transformation
+        poses.append(T.cpu().numpy())
+        model.update_frame_pose(i, T)
+        model.integrate(frame, 1000.0, depth_max, 8.0)
+        model.synthesize_model_frame(raycast, 1000.0, 0.1, depth_max, 8.0, False)
+    return np.stack(poses), (time.perf_counter() - start) / (len(sequence) - 1), "-"
+
+
+def pair_errors_mm(poses: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Translation error (mm) of each consecutive relative pose."""
+    return np.array([1000 * np.linalg.norm((invert(invert(poses[k]) @ poses[k + 1]) @ (invert(gt[k]) @ gt[k + 1]))[:3, 3])
+                     for k in range(len(gt) - 1)])
+
+
+def row(name: str, method: str, poses: np.ndarray, gt: np.ndarray, seconds: float | None, extra: str) -> str:
     trans, rot = rpe(poses, gt)
-    return ate(poses, gt), trans, rot
+    e = pair_errors_mm(poses, gt)
+    s = "-" if seconds is None else f"{seconds:.2f}"
+    return (f"| {name} | {method} | {1000 * ate(poses, gt):.1f} | {1000 * trans:.1f} | {rot:.3f} | "
+            f"{np.median(e):.1f} / {np.percentile(e, 90):.1f} / {e.max():.1f} | {extra} | {s} |")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="320x240 only, extreme blur, 12 frames")
-    parser.add_argument("--frames", type=int, default=16, help="frames benchmarked per sequence")
-    parser.add_argument("--turn-frames", type=int, default=40, help="frames per full turn (360 / this = deg per frame)")
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--size", default="320x240")
+    parser.add_argument("--trajectories", default="handheld,turn,translation")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--real-every", default="1,2,3", help="7-Scenes frame steps; empty: no real data")
+    parser.add_argument("--real-scale", type=float, default=0.5)
+    parser.add_argument("--methods", default=",".join([*OURS, *DERIVED, "O3D hybrid", "O3D ICP", "O3D dense SLAM", "DIS RANSAC"]))
+    parser.add_argument("--sequence", type=Path, action="append", help="benchmark these folders instead")
     parser.add_argument("--out", type=Path, default=None, help="keep sequences and outputs here")
-    parser.add_argument("--trajectories", default="translation,turn,handheld")
-    parser.add_argument("--sizes", default="320x240,640x480")
-    parser.add_argument("--blurs", default="none,moderate,extreme")
-    parser.add_argument("--methods", default=",".join([*OURS, "ICP only", "O3D hybrid"]))
-    parser.add_argument("--sequence", type=Path, action="append", help="benchmark this folder instead of synthetic ones")
     args = parser.parse_args()
     methods = args.methods.split(",")
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_pose_"))
-    print("| sequence | method | ATE (m) | RPE trans (m) | RPE rot (deg) | s/pair | weak (seeded) / failed pairs |")
-    print("|---|---|---|---|---|---|---|")
-    for name, sequence, clean_depths in sequences(args, root):
-        flow_dir = root / folder_name(name) / "gt_flow"
-        if "ours GT-flow" in methods:
-            gt_flows(sequence, clean_depths, flow_dir)
+    print("| sequence | method | ATE (mm) | RPE trans (mm) | RPE rot (deg) | pair err p50 / p90 / max (mm) | weak / pruned | s/pair |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, sequence in sequences(args, root):
+        gt = sequence.gt_poses
+        ours = None
         for method in methods:
             if method in OURS:
-                poses, seconds, weak = run_ours(sequence, OURS[method], flow_dir, root / folder_name(name) / folder_name(method))
-            elif method == "ICP only":
-                poses, seconds, weak = run_icp_only(sequence, PoseConfig())
+                result, seconds, extra = run_ours(sequence, OURS[method], root / slug(name) / slug(method))
+                poses = result.poses
+                if method == "ours":
+                    ours = result
+            elif method in DERIVED or method.startswith("cand:"):
+                if ours is None:
+                    continue
+                poses, seconds, extra = derived(ours, method), None, "-"
+            elif method == "O3D hybrid":
+                poses, seconds, extra = run_hybrid(sequence)
+            elif method == "O3D ICP":
+                poses, seconds, extra = run_icp(sequence)
+            elif method == "O3D dense SLAM":
+                poses, seconds, extra = run_dense_slam(sequence)
+            elif method == "DIS RANSAC":
+                poses, seconds, extra = run_dis_ransac(sequence)
             else:
-                poses, seconds, weak = run_open3d_hybrid(sequence)
-            a, t, r = evaluate(poses, sequence.gt_poses)
-            print(f"| {name} | {method} | {a:.4f} | {t:.4f} | {r:.3f} | {seconds:.2f} | {weak} |", flush=True)
+                raise SystemExit(f"unknown method {method!r}")
+            print(row(name, method, poses, gt, seconds, extra), flush=True)
 
 
-def folder_name(label: str) -> str:
-    """A table label as one folder name."""
-    return label.replace(" ", "_").replace("/", "_per_")
+def slug(label: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in label)
 
 
 def sequences(args, root: Path):
-    """(name, sequence, noise-free depths) of the given folders, or of generated synthetic ones."""
+    """(name, sequence) of the given folders, or of the synthetic and 7-Scenes grid."""
     if args.sequence:
         for folder in args.sequence:
-            sequence = load_sequence(folder)
-            yield folder.name, sequence, [sequence.depth(i) for i in range(len(sequence))]
+            yield folder.name, first_frames(load_sequence(folder), args.frames)
         return
-    from taichi_gs.synth import SynthConfig, generate, render_view
+    from taichi_gs.synth import SynthConfig, generate
 
-    sizes = [tuple(int(x) for x in s.split("x")) for s in args.sizes.split(",")]
-    blurs, frames = args.blurs.split(","), args.frames
-    if args.quick:
-        sizes, blurs, frames = [(320, 240)], ["extreme"], 12
+    w, h = (int(x) for x in args.size.split("x"))
     for trajectory in args.trajectories.split(","):
-        generated = max(frames, args.turn_frames) if trajectory == "turn" else frames
-        label = f"turn {360 / generated:g}deg/frame" if trajectory == "turn" else trajectory
-        for w, h in sizes:
-            for blur in blurs:
-                name = f"{label} {w}x{h} {blur}"
-                folder = root / folder_name(name) / "seq"
-                generate(SynthConfig(width=w, height=h, frames=generated, trajectory=trajectory, blur=blur, seed=0), folder)
-                sequence = first_frames(load_sequence(folder), frames)
-                K = sequence.intrinsics.K()
-                yield name, sequence, [render_view(p, K, w, h, 0)[1] for p in sequence.gt_poses]
+        for seed in (int(s) for s in args.seeds.split(",")):
+            folder = root / f"{trajectory}_{w}x{h}_s{seed}"
+            if not (folder / "frames.txt").is_file():
+                generate(SynthConfig(width=w, height=h, frames=args.frames, trajectory=trajectory, blur="extreme", seed=seed), folder)
+            yield f"{trajectory} {w}x{h} seed {seed}", load_sequence(folder)
+    for every in (int(e) for e in args.real_every.split(",") if e):
+        folder = root / f"7scenes_every{every}_x{args.real_scale:g}"
+        if not (folder / "frames.txt").is_file():
+            convert_7scenes(folder, SEVEN_SCENES, first=0, count=args.frames, every=every, scale=args.real_scale)
+        yield f"7-Scenes every {every} x{args.real_scale:g}", load_sequence(folder)
 
 
 def first_frames(sequence, n: int):
     """A copy of a loaded sequence cut to its first n frames."""
     cut = copy.copy(sequence)
     for attr in ("timestamps", "rgb_paths", "depth_paths", "names", "gt_poses", "exposure_poses", "sharp_paths"):
-        value = getattr(sequence, attr)
-        setattr(cut, attr, None if value is None else value[:n])
+        value = getattr(sequence, attr, None)
+        if value is not None:
+            setattr(cut, attr, value[:n])
     return cut
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 from .errors import InputError
 from .flow import DIS_PRESETS
+from .stages.pose import CANDIDATE_NAMES
 
 Check = Callable[[Any], bool]
 
@@ -59,6 +60,16 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "icp_max_points": OPTIONAL_COUNT, "icp_min_fitness": FRACTION, "icp_max_jump_m": POSITIVE,
         "icp_max_jump_deg": POSITIVE, "rgbd_iterations": _each(COUNT), "rgbd_depth_diff_max_m": POSITIVE,
         "voxel_size_m": POSITIVE,
+        "verify_max_score": POSITIVE, "verify_margin": NON_NEGATIVE, "verify_min_overlap": FRACTION,
+        "verify_preference": ((lambda v: len(v) > 0 and set(v) <= set(CANDIDATE_NAMES)),
+                              "a non-empty list of " + ", ".join(CANDIDATE_NAMES)),
+        "verify_grid_points": _at_least(10), "verify_depth_sigma_m": POSITIVE,
+        "verify_depth_sigma_quadratic": NON_NEGATIVE, "verify_photo_sigma": POSITIVE,
+        "verify_photo_weight": NON_NEGATIVE, "graph_skips": ((lambda v: all(isinstance(k, int) and k >= 2 for k in v)),
+                                                             "a list of frame gaps of at least 2"),
+        "graph_weak_weight": NON_NEGATIVE, "graph_info_voxel_m": POSITIVE, "graph_info_distance_m": POSITIVE,
+        "loop_min_gap": _at_least(2), "loop_every": COUNT, "loop_max_distance_m": POSITIVE,
+        "loop_max_angle_deg": _within(0, 180),
     },
     "refine": {
         "voxel_size": NON_NEGATIVE, "initial_opacity": _within(0.01, 0.99), "iterations_per_frame": COUNT,
@@ -67,6 +78,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "min_alpha": _within(0.01, 1), "views_per_step": COUNT, "pose_rotation_per_m": NON_NEGATIVE,
         "pose_warmup_fraction": FRACTION, "resolution_scale": COUNT, "checkpoint_every": COUNT,
         "max_depth": NON_NEGATIVE, "edge_ratio": NON_NEGATIVE, "edge_radius": OPTIONAL_COUNT,
+        "pose_prior_weight": NON_NEGATIVE, "pose_prior_sigma_m": POSITIVE, "pose_prior_sigma_deg": POSITIVE,
     },
     "deblur": {
         "k": COUNT, "holdout_every": ((lambda v: v == 0 or v >= 2), "0 (no test views) or at least 2"),

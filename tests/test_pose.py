@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -14,7 +15,7 @@ from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert, se3_exp, se3_log
 from taichi_gs.io.ply import read_point_cloud
 from taichi_gs.io.trajectory import read_tum
-from taichi_gs.stages.pose import PoseConfig, estimate_relative_pose, run_pose
+from taichi_gs.stages.pose import METHOD_ONLY, PoseConfig, estimate_relative_pose, run_pose
 
 W, H = 160, 120
 
@@ -53,7 +54,7 @@ def rotation_error_deg(A: np.ndarray, B: np.ndarray) -> float:
 
 def test_relative_pose_from_dis_flow_and_icp():
     color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
-    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig())
+    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=METHOD_ONLY)
     assert not result.weak, result.reason
     assert result.estimate == "icp" and result.icp_fitness > 0.9
     assert np.linalg.norm(result.transform[:3, 3] - MOTION[:3, 3]) < 2e-3
@@ -64,14 +65,14 @@ def test_relative_pose_from_dis_flow_and_icp():
 def test_pair_without_depth_is_weak_and_returns_the_prior():
     color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
     prior = se3_exp(np.array([0.01, 0, 0, 0, 0, 0]))
-    result = estimate_relative_pose(color_t, np.zeros_like(depth_t), color_t1, depth_t1, K, config=PoseConfig(), prior=prior)
+    result = estimate_relative_pose(color_t, np.zeros_like(depth_t), color_t1, depth_t1, K, config=METHOD_ONLY, prior=prior)
     assert result.weak and result.estimate == "constant-velocity" and "pixels" in result.reason
     np.testing.assert_array_equal(result.transform, prior)
 
 
 def test_icp_that_jumps_away_keeps_the_flow_estimate():
     color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
-    config = PoseConfig(icp_max_jump_m=1e-9, icp_max_jump_deg=1e-9)
+    config = dataclasses.replace(METHOD_ONLY, icp_max_jump_m=1e-9, icp_max_jump_deg=1e-9)
     result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=config)
     assert result.weak and result.estimate == "flow" and "ICP moved" in result.reason
     np.testing.assert_array_equal(result.transform, result.flow_transform)
@@ -81,9 +82,10 @@ def test_pair_beyond_dis_range_is_recovered_with_prior_seeded_flow():
     motion = se3_exp(np.array([0.02, 0.0, 0.01, 0.0, np.radians(12.0), 0.0]))  # ~30 px at 160x120
     prior = se3_exp(np.array([0.0, 0.0, 0.0, 0.0, np.radians(10.0), 0.0]))  # constant-velocity guess, 2 deg off
     color_t, depth_t, color_t1, depth_t1, K = pair(motion)
-    unseeded = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig(seeded_retry=False), prior=prior)
+    unseeded = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K,
+                                      config=dataclasses.replace(METHOD_ONLY, seeded_retry=False), prior=prior)
     assert unseeded.weak and unseeded.flow_seed == "none"
-    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig(), prior=prior)
+    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=METHOD_ONLY, prior=prior)
     assert not result.weak and result.flow_seed == "constant-velocity" and result.estimate == "icp"
     assert result.reason.startswith("unseeded flow failed")
     assert np.linalg.norm(result.transform[:3, 3] - motion[:3, 3]) < 0.01  # 4.6 mm measured
@@ -92,12 +94,13 @@ def test_pair_beyond_dis_range_is_recovered_with_prior_seeded_flow():
 
 def test_rgbd_refinement_replaces_the_icp_estimate_when_it_stays_close():
     color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
-    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig(rgbd_refine=True))
+    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=dataclasses.replace(METHOD_ONLY, rgbd_refine=True))
     assert not result.weak and result.estimate == "rgbd"
     assert np.linalg.norm(result.transform[:3, 3] - MOTION[:3, 3]) < 5e-3  # 2.1 mm measured (ICP alone: 0.8 mm)
     assert rotation_error_deg(result.transform, MOTION) < 0.15  # 0.06 deg measured
     guarded = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K,
-                                     config=PoseConfig(rgbd_refine=True, icp_max_jump_m=1e-4, icp_max_jump_deg=2.0))
+                                     config=dataclasses.replace(METHOD_ONLY, rgbd_refine=True, icp_max_jump_m=1e-4,
+                                                                icp_max_jump_deg=2.0))
     assert guarded.estimate != "rgbd"  # a refinement moving > 0.1 mm is not kept
 
 
@@ -160,7 +163,7 @@ def test_rerun_reads_cached_pairs_and_recomputes_after_a_config_change(tmp_path,
 def test_frame_without_depth_becomes_weak_constant_velocity_pairs(tmp_path):
     poses = walk(5)
     sequence = SceneSequence(poses, broken_depth={2})
-    result = run_pose(sequence, tmp_path, PoseConfig())
+    result = run_pose(sequence, tmp_path, METHOD_ONLY)
     estimates = [p["estimate"] for p in result.pairs]
     assert estimates[2] == "constant-velocity" and result.pairs[2]["weak"]
     assert estimates[0] == "icp" and estimates[3] == "icp"

@@ -29,6 +29,8 @@ from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
+from ..pose_graph import Edge, optimise
+from ..pose_verify import FrameView, Verification, VerifySettings, frame_view, verify
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
 from .pose_solver import SolverSettings, solve
 
@@ -37,6 +39,8 @@ NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError)
 
 # Estimate kinds recorded per pair.
 FROM_RGBD, FROM_ICP, FROM_FLOW, FROM_CONSTANT_VELOCITY = "rgbd", "icp", "flow", "constant-velocity"
+# Names of a pair's candidates (see _candidates): what started what.
+CANDIDATE_NAMES = ("rgbd-icp", "rgbd-icp-prior", "rgbd-flow", "icp", "icp-prior", "flow", "constant-velocity")
 
 
 @dataclass(frozen=True)
@@ -77,15 +81,46 @@ class PoseConfig:
     icp_distance_factor: float = 2.0  # correspondence distance = factor x voxel
     icp_normal_radius_factor: float = 3.0
     icp_normal_max_nn: int = 30
-    icp_max_points: int = 80000  # finest level's cap: voxels grow until the source has no more points
+    icp_max_points: int = 20000  # finest level's cap: voxels grow until the source has no more points
     icp_min_fitness: float = 0.3  # below: keep the flow estimate, flag the pair
     icp_max_jump_m: float = 0.05  # ICP moving farther from the flow estimate: keep the flow estimate
     icp_max_jump_deg: float = 2.0
     # [ours] optional last step: Open3D dense RGB-D odometry (hybrid term) from the ICP estimate,
     # kept unless it fails or jumps farther than the ICP guards allow
-    rgbd_refine: bool = False
+    rgbd_refine: bool = True
     rgbd_iterations: tuple = (20, 10, 5)  # per pyramid level, coarse to fine
     rgbd_depth_diff_max_m: float = 0.07
+    # [ours] verified candidates: every candidate pose of a pair (flow solve, ICP from it, ICP from the
+    # constant-velocity prior, RGB-D odometry from each ICP result, the prior itself) is scored by
+    # taichi_gs.pose_verify on both frames' depth and colour; the lowest score wins and sets "weak".
+    # false: the method's path (flow solve, then ICP behind the fitness and jump guards).
+    verify: bool = True
+    icp_from_prior: bool = True  # also run ICP from the constant-velocity prior (a second candidate)
+    verify_max_score: float = 0.5  # winner's score above it flags the pair weak
+    # near-ties (within this fraction of the lowest score) go to the first candidate in this order
+    verify_margin: float = 0.02
+    verify_preference: tuple = ("rgbd-icp", "rgbd-icp-prior", "icp", "icp-prior", "flow", "constant-velocity")
+    verify_min_overlap: float = 0.2  # winner's overlap below it flags the pair weak
+    verify_grid_points: int = 3000
+    verify_depth_sigma_m: float = 0.003
+    verify_depth_sigma_quadratic: float = 0.0025
+    verify_photo_sigma: float = 0.04
+    verify_photo_weight: float = 1.0
+    # [ours] robust pose graph (taichi_gs.pose_graph) over the pairs (i, i+1), extra edges (i, i+k) for k in
+    # graph_skips and loop closures where the chained cameras come back near an earlier one; each extra
+    # edge is RGB-D odometry (and ICP with graph_icp) started from the chained poses, verified like a pair
+    # and dropped when weak. false: poses are the chained pairs.
+    pose_graph: bool = True
+    graph_skips: tuple = (2, 3)
+    graph_icp: bool = False
+    graph_weak_weight: float = 0.01  # information scale of weak (i, i+1) pairs, kept to connect the graph
+    graph_info_voxel_m: float = 0.02  # clouds of the information matrices (Open3D, point-to-point)
+    graph_info_distance_m: float = 0.04
+    loop_closures: bool = True
+    loop_min_gap: int = 15  # frames between the two ends of a loop edge, at least
+    loop_every: int = 5  # look for a loop closure at every this-many-th frame
+    loop_max_distance_m: float = 0.3  # chained camera centres closer than this ...
+    loop_max_angle_deg: float = 30.0  # ... and viewing directions closer than this
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
 
@@ -99,10 +134,24 @@ class PoseConfig:
             cost_tolerance=self.cost_tolerance, initial_damping=self.initial_damping,
         )
 
+    def verify_settings(self) -> VerifySettings:
+        return VerifySettings(
+            grid_points=self.verify_grid_points, depth_sigma_m=self.verify_depth_sigma_m,
+            depth_sigma_quadratic=self.verify_depth_sigma_quadratic, photo_sigma=self.verify_photo_sigma,
+            photo_weight=self.verify_photo_weight, min_depth_m=self.min_depth_m, max_depth_m=self.max_depth_m,
+            depth_edge_ratio=self.depth_edge_ratio,
+        )
+
     def pair_key(self) -> str:
         """Hash of the fields that change a pair's result (not the fused cloud's voxel size)."""
         values = {k: v for k, v in dataclasses.asdict(self).items() if k != "voxel_size_m"}
         return hashlib.sha1(json.dumps(values, sort_keys=True, default=list).encode()).hexdigest()[:16]
+
+
+# The method's path alone: flow solve, then point-to-plane ICP behind its guards, pairs chained
+# (as a --config file: [pose] verify = false, rgbd_refine = false, icp_from_prior = false, pose_graph = false,
+# icp_max_points = 80000).
+METHOD_ONLY = PoseConfig(verify=False, rgbd_refine=False, icp_from_prior=False, pose_graph=False, icp_max_points=80000)
 
 
 @dataclass
@@ -121,6 +170,9 @@ class RelativePose:
     icp_fitness: float = float("nan")
     icp_inlier_rmse_m: float = float("nan")
     seconds: float = 0.0
+    score: float = float("nan")  # verification score of the chosen transform (lower is better)
+    overlap: float = float("nan")
+    candidates: dict = field(default_factory=dict)  # candidate name -> verification (as a dict)
     icp_transform: np.ndarray | None = None  # ICP's own result, also when rejected (not saved)
 
     def to_dict(self) -> dict:
@@ -131,6 +183,7 @@ class RelativePose:
             "flow_residual_px": _finite_or_none(self.flow_residual_px), "points": self.points,
             "iterations": list(self.iterations), "icp_fitness": _finite_or_none(self.icp_fitness),
             "icp_inlier_rmse_m": _finite_or_none(self.icp_inlier_rmse_m), "seconds": round(self.seconds, 4),
+            "score": _finite_or_none(self.score), "overlap": _finite_or_none(self.overlap), "candidates": self.candidates,
         }
 
     @classmethod
@@ -143,6 +196,8 @@ class RelativePose:
             flow_residual_px=nan if d["flow_residual_px"] is None else d["flow_residual_px"], points=d["points"],
             iterations=tuple(d["iterations"]), icp_fitness=nan if d["icp_fitness"] is None else d["icp_fitness"],
             icp_inlier_rmse_m=nan if d["icp_inlier_rmse_m"] is None else d["icp_inlier_rmse_m"], seconds=d["seconds"],
+            score=nan if d.get("score") is None else d["score"], overlap=nan if d.get("overlap") is None else d["overlap"],
+            candidates=d.get("candidates", {}),
         )
 
 
@@ -153,11 +208,18 @@ class PoseResult:
     poses: np.ndarray
     pairs: list[dict]
     paths: dict[str, Path] = field(default_factory=dict)
+    edges: list[dict] = field(default_factory=list)  # pose-graph edges (empty without the graph)
+    graph_seconds: float = 0.0  # extra edges and optimisation
 
     def summary(self) -> str:
         weak = sum(1 for p in self.pairs if p["weak"])
         fallback = sum(1 for p in self.pairs if p["estimate"] == FROM_CONSTANT_VELOCITY)
-        return f"{len(self.pairs)} pairs, {weak} weak ({fallback} replaced by constant velocity)"
+        text = f"{len(self.pairs)} pairs, {weak} weak ({fallback} replaced by constant velocity)"
+        if self.edges:
+            loops = sum(e["kind"] == "loop" for e in self.edges)
+            pruned = sum(e["pruned"] for e in self.edges)
+            text += f"; pose graph: {len(self.edges)} edges ({loops} loop closures), {pruned} pruned"
+        return text
 
 
 def estimate_relative_pose(
@@ -174,11 +236,13 @@ def estimate_relative_pose(
     """Transform camera t -> t+1 minimising L_F, then L_F + l_I L_I + l_C L_C, then refined by ICP
     (and, with ``rgbd_refine``, by dense RGB-D odometry).
 
-    Without ``flow``, forward and backward DIS flows are computed. When that estimate is weak, the
-    pair is redone with DIS flows seeded by the flow of a guessed motion (``prior``, the
-    constant-velocity guess, if it moves; then a rejected but well-fitting ICP result, see
-    :func:`_retry_seeds`); the first retry that is not weak replaces it. ``prior`` (default identity)
-    itself is returned, flagged weak, when the pair cannot be aligned.
+    With ``verify`` (default) every candidate of the pair is scored by :func:`taichi_gs.pose_verify.verify`
+    and the lowest score wins (see :func:`_choose`); otherwise ICP replaces the flow estimate unless it
+    fits poorly or jumps away. Without ``flow``, forward and backward DIS flows are computed. When that
+    estimate is weak, the pair is redone with DIS flows seeded by the flow of a guessed motion
+    (``prior``, the constant-velocity guess, if it moves; then a rejected but well-fitting ICP result,
+    see :func:`_retry_seeds`); a retry replaces it if it is not weak (with ``verify``: if it scores
+    lower). ``prior`` (default identity) itself is returned, flagged weak, when nothing aligns the pair.
     """
     start = time.perf_counter()
     prior = np.eye(4) if prior is None else prior
@@ -186,15 +250,21 @@ def estimate_relative_pose(
     if flow is None:
         flow = dis_flow(gray_t, gray_t1, config.flow_preset)
         backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset)
+    views = None
+    if config.verify:
+        settings = config.verify_settings()
+        views = (frame_view(color_t, depth_t, K, settings), frame_view(color_t1, depth_t1, K, settings))
     frames = (color_t, depth_t, color_t1, depth_t1, K)
-    first = _align(*frames, flow, backward_flow, prior, config)
+    first = _align(*frames, flow, backward_flow, prior, config, views)
     result = first
     for seed, guess in _retry_seeds(first, prior, config):
         forward, backward = seeded_flows(gray_t, gray_t1, depth_t, depth_t1, K, guess, config.flow_preset)
-        retry = _align(*frames, forward, backward, prior, config)
-        if not retry.weak:
+        retry = _align(*frames, forward, backward, prior, config, views)
+        better = retry.score < result.score if config.verify else not retry.weak
+        if better:
             retry.flow_seed, retry.reason = seed, f"unseeded flow failed: {first.reason}"
             result = retry
+        if not result.weak:
             break
     result.seconds = time.perf_counter() - start
     return result
@@ -221,33 +291,122 @@ def seeded_flows(gray_t: np.ndarray, gray_t1: np.ndarray, depth_t: np.ndarray, d
 
 
 def _align(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
-           flow: np.ndarray, backward_flow: np.ndarray | None, prior: np.ndarray, config: PoseConfig) -> RelativePose:
-    """One attempt with the given flows: the two solver phases from identity, then ICP and the guards."""
+           flow: np.ndarray, backward_flow: np.ndarray | None, prior: np.ndarray, config: PoseConfig,
+           views: tuple[FrameView, FrameView] | None = None) -> RelativePose:
+    """One attempt with the given flows: the two solver phases from identity, then ICP and either the
+    verification of every candidate (``views`` given) or the method's guards."""
     start = time.perf_counter()
     source_mask = reliable_depth_mask(depth_t, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
     samples = sample_pair(color_t, depth_t, color_t1, depth_t1, K, flow, backward_flow, source_mask, config)
-    if len(samples.points) < config.min_points:
-        return _fallback(prior, f"only {len(samples.points)} pixels with reliable depth and consistent flow", start)
-
-    flow_only = solve(np.eye(4), samples, config.solver_settings(with_all_terms=False))
-    if not np.isfinite(flow_only.cost):
-        return _fallback(prior, f"flow solve left {flow_only.valid_points} valid pixels", start)
-    full = solve(flow_only.T, samples, config.solver_settings(with_all_terms=True))
-    flow_T = full.T if np.isfinite(full.cost) else flow_only.T
-    if not np.all(np.isfinite(flow_T)):
-        return _fallback(prior, "solver diverged (non-finite pose)", start)
-    result = RelativePose(flow_T, FROM_FLOW, flow_transform=flow_T, points=len(samples.points),
-                          iterations=(flow_only.iterations, full.iterations))
-    if config.use_icp:
-        _refine_with_icp(result, depth_t, depth_t1, K, source_mask, config)
-    if config.rgbd_refine and result.estimate == FROM_ICP:
-        _refine_with_rgbd(result, color_t, depth_t, color_t1, depth_t1, K, config)
+    flow_T, iterations, reason = _flow_solve(samples, config)
+    if views is None and flow_T is None:
+        return _fallback(prior, reason, start)
+    if views is None:
+        result = RelativePose(flow_T, FROM_FLOW, flow_transform=flow_T, points=len(samples.points), iterations=iterations)
+        if config.use_icp:
+            _refine_with_icp(result, depth_t, depth_t1, K, source_mask, config)
+        if config.rgbd_refine and result.estimate == FROM_ICP:
+            _refine_with_rgbd(result, color_t, depth_t, color_t1, depth_t1, K, config)
+    else:
+        result = _choose(_candidates(color_t, depth_t, color_t1, depth_t1, K, source_mask, flow_T, prior, config),
+                         views, K, config)
+        result.flow_transform, result.points, result.iterations = flow_T, len(samples.points), iterations
+        if flow_T is None:
+            result.reason = "; ".join(filter(None, [reason, result.reason]))
     final = warp(result.transform, samples)
     if final.valid.sum() > 0:
         result.flow_residual_px = float(np.median(flow_residuals(final, samples).norms()[final.valid]))
-    if not result.weak and not result.flow_residual_px <= config.max_flow_residual_px:
+    if views is None and not result.weak and not result.flow_residual_px <= config.max_flow_residual_px:
         result.weak, result.reason = True, f"median flow residual {result.flow_residual_px:.2f} px"
     return result
+
+
+def _flow_solve(samples: PairSamples, config: PoseConfig) -> tuple[np.ndarray | None, tuple[int, int], str]:
+    """The method's two solver phases from identity: (transform or None, iterations, why not)."""
+    if len(samples.points) < config.min_points:
+        return None, (0, 0), f"only {len(samples.points)} pixels with reliable depth and consistent flow"
+    flow_only = solve(np.eye(4), samples, config.solver_settings(with_all_terms=False))
+    if not np.isfinite(flow_only.cost):
+        return None, (flow_only.iterations, 0), f"flow solve left {flow_only.valid_points} valid pixels"
+    full = solve(flow_only.T, samples, config.solver_settings(with_all_terms=True))
+    flow_T = full.T if np.isfinite(full.cost) else flow_only.T
+    if not np.all(np.isfinite(flow_T)):
+        return None, (flow_only.iterations, full.iterations), "solver diverged (non-finite pose)"
+    return flow_T, (flow_only.iterations, full.iterations), ""
+
+
+@dataclass
+class Candidate:
+    """One candidate transform camera t -> t+1 and, for ICP candidates, ICP's own fit."""
+
+    transform: np.ndarray
+    icp_fitness: float = float("nan")
+    icp_inlier_rmse_m: float = float("nan")
+
+
+def _candidates(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
+                source_mask: np.ndarray, flow_T: np.ndarray | None, prior: np.ndarray, config: PoseConfig) -> dict[str, Candidate]:
+    """[ours] Every candidate of a pair: the flow solve, the prior, ICP from each (``icp_from_prior``),
+    and RGB-D odometry from each ICP result (``rgbd_refine``). Names say what started what."""
+    candidates = {FROM_CONSTANT_VELOCITY: Candidate(np.array(prior, dtype=np.float64))}
+    starts = {}
+    if flow_T is not None:
+        candidates[FROM_FLOW] = Candidate(flow_T)
+        starts[FROM_ICP] = flow_T
+    if config.icp_from_prior or flow_T is None:
+        starts[f"{FROM_ICP}-prior"] = candidates[FROM_CONSTANT_VELOCITY].transform
+    if not config.use_icp:
+        starts = {}
+    target_mask = reliable_depth_mask(depth_t1, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+    source, target = depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask)
+    for name, init in starts.items():
+        icp = _icp(source, target, init, config)
+        if np.all(np.isfinite(icp.transform)):
+            candidates[name] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
+    if config.rgbd_refine:
+        for name in [n for n in candidates if n.startswith(FROM_ICP)] or [n for n in (FROM_FLOW,) if n in candidates]:
+            refined = rgbd_odometry(color_t, depth_t, color_t1, depth_t1, K, candidates[name].transform,
+                                    tuple(config.rgbd_iterations), config.rgbd_depth_diff_max_m,
+                                    (config.min_depth_m, config.max_depth_m))
+            if refined is not None and np.all(np.isfinite(refined)):
+                candidates[f"{FROM_RGBD}-{name}"] = Candidate(refined)
+    return candidates
+
+
+def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView], K: np.ndarray,
+            config: PoseConfig, preference: tuple[str, ...] | None = None) -> RelativePose:
+    """The candidate with the lowest verification score (near-ties, within ``verify_margin`` of it, go to
+    the earliest in ``verify_preference``); weak if its score or overlap is poor."""
+    settings = config.verify_settings()
+    scores: dict[str, Verification] = {name: verify(c.transform, *views, K, settings) for name, c in candidates.items()}
+    name = min(scores, key=lambda n: scores[n].score)
+    if np.isfinite(scores[name].score):
+        tie = scores[name].score * (1.0 + config.verify_margin)
+        preference = config.verify_preference if preference is None else preference
+        name = next((n for n in preference if n in scores and scores[n].score <= tie), name)
+    elif FROM_CONSTANT_VELOCITY in scores:
+        name = FROM_CONSTANT_VELOCITY
+    best, chosen = scores[name], candidates[name]
+    icp = candidates.get(FROM_ICP) or candidates.get(f"{FROM_ICP}-prior")
+    result = RelativePose(chosen.transform, name, score=best.score, overlap=best.overlap,
+                          candidates={n: {**v.to_dict(), "transform": candidates[n].transform.tolist()}
+                                      for n, v in scores.items()})
+    if icp is not None:
+        result.icp_fitness, result.icp_inlier_rmse_m, result.icp_transform = icp.icp_fitness, icp.icp_inlier_rmse_m, icp.transform
+    if not best.score <= config.verify_max_score:
+        result.weak, result.reason = True, f"best verification score {best.score:.3f} > {config.verify_max_score}"
+    elif best.overlap < config.verify_min_overlap:
+        result.weak, result.reason = True, f"overlap {best.overlap:.2f} < {config.verify_min_overlap}"
+    return result
+
+
+def _icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray, config: PoseConfig):
+    return multiscale_point_to_plane(
+        source, target, init, voxel_sizes=tuple(s * config.icp_voxel_m for s in config.icp_scales),
+        iterations=tuple(config.icp_iterations), distance_factor=config.icp_distance_factor,
+        normal_radius_factor=config.icp_normal_radius_factor, normal_max_nn=config.icp_normal_max_nn,
+        max_points=config.icp_max_points,
+    )
 
 
 def sample_pair(
@@ -278,12 +437,7 @@ def _refine_with_icp(result: RelativePose, depth_t: np.ndarray, depth_t1: np.nda
                      source_mask: np.ndarray, config: PoseConfig) -> None:
     """Replace the flow estimate by point-to-plane ICP unless ICP fits poorly or jumps away from it."""
     target_mask = reliable_depth_mask(depth_t1, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
-    icp = multiscale_point_to_plane(
-        depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), result.transform,
-        voxel_sizes=tuple(s * config.icp_voxel_m for s in config.icp_scales), iterations=tuple(config.icp_iterations),
-        distance_factor=config.icp_distance_factor, normal_radius_factor=config.icp_normal_radius_factor,
-        normal_max_nn=config.icp_normal_max_nn, max_points=config.icp_max_points,
-    )
+    icp = _icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), result.transform, config)
     result.icp_fitness, result.icp_inlier_rmse_m, result.icp_transform = icp.fitness, icp.inlier_rmse, icp.transform
     jump = se3_log(icp.transform @ invert(result.transform))
     jump_m, jump_deg = float(np.linalg.norm(jump[:3])), float(np.degrees(np.linalg.norm(jump[3:])))
@@ -373,14 +527,103 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
 
     poses = chain_poses([r.transform for r in relatives])
     pairs = [_pair_record(k, sequence.names, r) for k, r in enumerate(relatives)]
-    result = PoseResult(poses, pairs)
+    edges: list[Edge] = []
+    graph_start = time.perf_counter()
+    if config.pose_graph:
+        poses, edges = refine_with_graph(sequence, relatives, poses, config)
+    result = PoseResult(poses, pairs, edges=[_edge_record(e) for e in edges],
+                        graph_seconds=time.perf_counter() - graph_start)
     paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
     write_tum(paths["trajectory"], np.asarray(sequence.timestamps), poses, header="taichi-gs stage 1, camera-to-world")
-    write_text(paths["pairs"], jsonout.dumps({"summary": result.summary(), "pairs": pairs}, indent=1) + "\n")
+    write_text(paths["pairs"], jsonout.dumps({"summary": result.summary(), "pairs": pairs, "edges": result.edges}, indent=1) + "\n")
     points, colors = fuse_points(sequence, poses, config)
     write_point_cloud(paths["points"], points, colors)
     result.paths = paths
     return result
+
+
+def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray,
+                      config: PoseConfig) -> tuple[np.ndarray, list[Edge]]:
+    """[ours] Poses from a robust pose graph over the pairs, skip edges and loop closures (see PoseConfig)."""
+    K = sequence.intrinsics.K()
+    n = len(sequence)
+    edges = []
+    for k, r in enumerate(relatives):
+        info = _information(sequence, k, k + 1, r.transform, K, config)
+        edges.append(Edge(k, k + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0), "odometry",
+                          r.estimate, r.score, r.weak))
+    for k in config.graph_skips:
+        for i in range(n - int(k)):
+            edge = _graph_edge(sequence, i, i + int(k), chained, K, config, "skip")
+            if edge is not None:
+                edges.append(edge)
+    if config.loop_closures:
+        for i, j in _loop_candidates(chained, config):
+            edge = _graph_edge(sequence, i, j, chained, K, config, "loop")
+            if edge is not None:
+                edges.append(edge)
+    return optimise(chained, edges), edges
+
+
+def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig, kind: str) -> Edge | None:
+    """A verified edge camera i -> camera j started from the current poses, or None when it is weak."""
+    init = invert(poses[j]) @ poses[i]
+    color_i, depth_i, color_j, depth_j = sequence.color(i), sequence.depth(i), sequence.color(j), sequence.depth(j)
+    candidates = {"chain": Candidate(init)}
+    if config.graph_icp:
+        mask_i = reliable_depth_mask(depth_i, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+        mask_j = reliable_depth_mask(depth_j, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+        icp = _icp(depth_cloud(depth_i, K, mask_i), depth_cloud(depth_j, K, mask_j), init, config)
+        if np.all(np.isfinite(icp.transform)):
+            candidates["icp-chain"] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
+    for name in list(candidates):
+        refined = rgbd_odometry(color_i, depth_i, color_j, depth_j, K, candidates[name].transform,
+                                tuple(config.rgbd_iterations), config.rgbd_depth_diff_max_m,
+                                (config.min_depth_m, config.max_depth_m))
+        if refined is not None and np.all(np.isfinite(refined)):
+            candidates[f"rgbd-{name}"] = Candidate(refined)
+    settings = config.verify_settings()
+    views = (frame_view(color_i, depth_i, K, settings), frame_view(color_j, depth_j, K, settings))
+    chosen = _choose(candidates, views, K, config, ("rgbd-icp-chain", "rgbd-chain", "icp-chain", "chain"))
+    if chosen.weak or chosen.estimate == "chain":
+        return None
+    return Edge(i, j, chosen.transform, _information(sequence, i, j, chosen.transform, K, config), kind,
+                chosen.estimate, chosen.score)
+
+
+def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
+    """(i, j) pairs, j - i >= loop_min_gap, whose chained cameras are close in position and direction:
+    for every loop_every-th frame j, the nearest such earlier frame i."""
+    pairs = []
+    for j in range(config.loop_min_gap, len(poses), max(config.loop_every, 1)):
+        best, best_distance = None, config.loop_max_distance_m
+        for i in range(0, j - config.loop_min_gap + 1):
+            distance = float(np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]))
+            cos = float(np.clip(poses[i][:3, 2] @ poses[j][:3, 2], -1.0, 1.0))
+            if distance <= best_distance and np.degrees(np.arccos(cos)) <= config.loop_max_angle_deg:
+                best, best_distance = i, distance
+        if best is not None:
+            pairs.append((best, j))
+    return pairs
+
+
+def _information(sequence, i: int, j: int, T: np.ndarray, K: np.ndarray, config: PoseConfig) -> np.ndarray:
+    """Open3D's point-to-point information matrix of the edge i -> j, reordered to [translation, rotation]."""
+    clouds = []
+    for f in (i, j):
+        depth = sequence.depth(f)
+        mask = reliable_depth_mask(depth, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+        clouds.append(depth_cloud(depth, K, mask).voxel_down_sample(config.graph_info_voxel_m))
+    info = np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+        clouds[0], clouds[1], config.graph_info_distance_m, T))
+    order = [3, 4, 5, 0, 1, 2]
+    info = info[np.ix_(order, order)]
+    return info + 1e-6 * np.trace(info) * np.eye(6) if np.trace(info) > 0 else np.eye(6) * 1e-6
+
+
+def _edge_record(edge: Edge) -> dict:
+    return {"source": edge.source, "target": edge.target, "kind": edge.kind, "estimate": edge.estimate,
+            "score": _finite_or_none(edge.score), "weak": edge.weak, "weight": round(edge.weight, 5), "pruned": edge.pruned}
 
 
 def _estimate_pair(sequence, provider: FlowProvider, k: int, K: np.ndarray, config: PoseConfig, prior: np.ndarray) -> RelativePose:
@@ -409,5 +652,5 @@ def _load_pair(path: Path, key: str) -> RelativePose | None:
 
 def _pair_record(k: int, names: list[str], r: RelativePose) -> dict:
     record = {"index": k, "source": names[k], "target": names[k + 1]}
-    record.update({key: value for key, value in r.to_dict().items() if key not in ("transform", "flow_transform")})
+    record.update({key: value for key, value in r.to_dict().items() if key != "flow_transform"})
     return record

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..config import tomllib
 from ..errors import InputError
-from ..geometry import adjoint, se3_exp
+from ..geometry import adjoint, invert, se3_exp, se3_log
 from ..io.atomic import atomic_path, write_text
 from ..io import jsonout
 from ..io.ply import read_point_cloud, write_point_cloud, write_splats
@@ -72,6 +72,12 @@ class RefineConfig:
     lr_pose_final: float = 1e-5
     pose_rotation_per_m: float = 0.5  # rotation lr (rad) per translation lr (m): ~1 / scene depth
     pose_warmup_fraction: float = 0.1  # poses stay fixed for this first part of the schedule
+    # [ours] pose prior: + w/2 (|e_t / sigma_t|^2 + |e_r / sigma_r|^2), e = log(initial^-1 pose) in the camera
+    # frame, pulling each pose towards stage 1's; w in metres (0.003: at one sigma the prior pulls about as
+    # hard as the depth L1 of a fronto-parallel view). 0 = off (the method).
+    pose_prior_weight: float = 0.0
+    pose_prior_sigma_m: float = 0.003
+    pose_prior_sigma_deg: float = 0.1
     resolution_scale: int = 1  # render at 1/scale of the input resolution
     seed: int = 0
     checkpoint_every: int = 500
@@ -185,7 +191,8 @@ def run_refine(
             lr = _pose_lrs(config, fraction)
             for f, grad in zip(frames, pose_grads):
                 if f != 0:
-                    poses[f] = _adam_pose_step(poses[f], grad, pose_adam[f], pose_steps, f, lr)
+                    prior = _pose_prior_gradient(poses[f], initial_poses[f], config)
+                    poses[f] = _adam_pose_step(poses[f], grad, pose_adam[f], pose_steps, f, lr, prior)
         if (it + 1) % 10 == 0 or it == total - 1:
             history.append({"iteration": it + 1, **losses, "gaussians": model.count})
         if (it + 1) % prune_every == 0 and it + 1 < total:
@@ -243,14 +250,25 @@ def _pose_lrs(config: RefineConfig, fraction: float) -> np.ndarray:
     return np.array([lr] * 3 + [lr * config.pose_rotation_per_m] * 3)
 
 
+def _pose_prior_gradient(pose: np.ndarray, initial: np.ndarray, config: RefineConfig) -> np.ndarray | None:
+    """Camera-frame gradient of the pose prior, w [e_t / sigma_t^2, e_r / sigma_r^2] (first order), or None when off."""
+    if config.pose_prior_weight <= 0:
+        return None
+    e = se3_log(invert(initial) @ pose)
+    sigma = np.array([config.pose_prior_sigma_m] * 3 + [np.radians(config.pose_prior_sigma_deg)] * 3)
+    return config.pose_prior_weight * e / sigma**2
+
+
 def _adam_pose_step(pose: np.ndarray, grad: np.ndarray, adam: np.ndarray, steps: np.ndarray, frame: int, lr: np.ndarray,
-                    beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-12) -> np.ndarray:
+                    prior: np.ndarray | None = None, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-12) -> np.ndarray:
     """Adam on the camera-frame se(3) perturbation ``pose @ exp(delta)`` (translation along the
     camera's axes, rotation about its centre); the pose stays on SE(3) (update by exp).
 
     ``grad`` is the rasterizer's gradient for the world-frame perturbation ``exp(delta) @ pose``;
-    the camera-frame one is ``Ad(pose)^T grad``."""
+    the camera-frame one is ``Ad(pose)^T grad``; ``prior`` (camera frame) is added to it."""
     grad = adjoint(pose).T @ grad
+    if prior is not None:
+        grad = grad + prior
     steps[frame] += 1
     t = steps[frame]
     adam[0] = beta1 * adam[0] + (1 - beta1) * grad

@@ -1,0 +1,160 @@
+"""[ours] One verification score for any candidate relative pose of two RGB-D frames.
+
+Every candidate (flow solve, ICP, RGB-D odometry, constant velocity) is scored the same way, so the
+stage can pick the best one and call a pair weak from the score rather than from ICP's own fitness,
+which stays high when ICP slides along a plane. For a transform T (camera a -> camera b):
+
+- a fixed grid of pixels of frame a with reliable depth is moved by T and projected into frame b;
+- geometric residual: point-to-plane distance to frame b's surface at that pixel,
+  ``r_g = n_b . (T P_a - P_b)``, scaled by the depth sensor's noise ``sigma(z) = s0 + s2 z^2``;
+- photometric residual: grey value of a minus grey value of b at the warped pixel (both lightly
+  smoothed, each minus its mean over the overlap so a global brightness change does not count),
+  scaled by ``sigma_photo``; colour constrains motion along planes, where depth alone cannot;
+- each residual goes through the bounded Geman-McClure loss ``r^2 / (r^2 + sigma^2)`` (0 = perfect,
+  1 = outlier), so occlusions and moving objects cost at most one unit per pixel;
+- the same is done backwards (frame b's pixels moved by T^-1 into frame a), and the two directions are
+  averaged: a candidate must explain both frames (forward-backward consistency).
+
+The score is the mean robust cost over the overlap, in [0, 1]; lower is better. ``overlap`` is the
+smaller of the two directions' fractions of grid pixels that land on valid depth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .geometry import backproject
+from .icp import reliable_depth_mask
+from .stages.pose_losses import bilinear, bilinear_depth
+
+
+@dataclass(frozen=True)
+class VerifySettings:
+    """Noise scales of the score and the grid it is computed on."""
+
+    grid_points: int = 3000  # grid pixels per direction (fewer where depth is missing)
+    depth_sigma_m: float = 0.003  # s0: depth noise at zero range
+    depth_sigma_quadratic: float = 0.0025  # s2: depth noise growth, metres per metre^2 (Kinect-like)
+    photo_sigma: float = 0.04  # grey levels in [0, 1]
+    photo_weight: float = 1.0  # weight of the photometric cost against the geometric one
+    smooth_px: float = 1.0  # Gaussian sigma (pixels at 320 px width; scaled with the width)
+    min_depth_m: float = 0.1
+    max_depth_m: float = 10.0
+    depth_edge_ratio: float = 0.05
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """What scoring needs of one frame: smoothed grey image, depth, normals and the grid samples."""
+
+    gray: np.ndarray  # H x W float64
+    depth: np.ndarray  # H x W float64, 0 = invalid
+    normals: np.ndarray  # H x W x 3 camera-frame unit normals (NaN where undefined)
+    grid_points: np.ndarray  # N x 3 camera-frame points of the grid pixels
+    grid_gray: np.ndarray  # N grey values there
+
+
+@dataclass(frozen=True)
+class Verification:
+    """Score of one candidate (lower is better), its two components and the overlap fraction."""
+
+    score: float
+    geometric: float
+    photometric: float
+    overlap: float
+
+    def to_dict(self) -> dict:
+        return {k: round(float(v), 5) if np.isfinite(v) else None for k, v in self.__dict__.items()}
+
+
+def frame_view(color: np.ndarray, depth: np.ndarray, K: np.ndarray, settings: VerifySettings = VerifySettings()) -> FrameView:
+    """Precompute one frame's grey image, normals and grid samples (reused for every candidate)."""
+    h, w = depth.shape
+    gray = cv2.cvtColor(np.ascontiguousarray(color, dtype=np.float32), cv2.COLOR_RGB2GRAY).astype(np.float64)
+    sigma = settings.smooth_px * w / 320.0
+    if sigma > 0:
+        gray = cv2.GaussianBlur(gray, (0, 0), sigma)
+    depth = np.asarray(depth, dtype=np.float64)
+    mask = reliable_depth_mask(depth, settings.min_depth_m, settings.max_depth_m, settings.depth_edge_ratio)
+    depth = np.where(mask, depth, 0.0)
+    points = backproject(depth, K)
+    normals = depth_normals(points, mask)
+    stride = max(1, int(np.sqrt(mask.sum() / max(settings.grid_points, 1))))
+    grid = np.zeros_like(mask)
+    grid[stride // 2::stride, stride // 2::stride] = True
+    grid &= mask
+    return FrameView(gray, depth, normals, points[grid], gray[grid])
+
+
+def depth_normals(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Unit normals (facing the camera) from central differences of a point map; NaN where undefined."""
+    du = np.zeros_like(points)
+    dv = np.zeros_like(points)
+    du[:, 1:-1] = points[:, 2:] - points[:, :-2]
+    dv[1:-1] = points[2:] - points[:-2]
+    normals = np.cross(du, dv)
+    ok = np.zeros_like(mask)
+    ok[1:-1, 1:-1] = mask[1:-1, 2:] & mask[1:-1, :-2] & mask[2:, 1:-1] & mask[:-2, 1:-1] & mask[1:-1, 1:-1]
+    length = np.linalg.norm(normals, axis=-1)
+    ok &= length > 0
+    normals = normals / np.where(ok, length, 1.0)[..., None]
+    flip = np.sum(normals * points, axis=-1) > 0
+    normals[flip] *= -1.0
+    normals[~ok] = np.nan
+    return normals
+
+
+def _direction(T: np.ndarray, source: FrameView, target: FrameView, K: np.ndarray,
+               settings: VerifySettings) -> tuple[float, float, int, int]:
+    """Sums of the geometric and photometric robust costs of source's grid moved by T into target,
+    the number of grid points that land on valid target depth, and the grid size."""
+    n = len(source.grid_points)
+    if n == 0:
+        return 0.0, 0.0, 0, 0
+    Q = source.grid_points @ T[:3, :3].T + T[:3, 3]
+    front = Q[:, 2] > 1e-3
+    z = np.where(front, Q[:, 2], 1.0)
+    pixels = np.stack([K[0, 0] * Q[:, 0] / z + K[0, 2], K[1, 1] * Q[:, 1] / z + K[1, 2]], axis=-1)
+    pixels[~front] = np.nan
+    depth, _, valid = bilinear_depth(target.depth, pixels)
+    u = np.clip(np.round(np.nan_to_num(pixels[:, 0])).astype(np.int64), 0, target.depth.shape[1] - 1)
+    v = np.clip(np.round(np.nan_to_num(pixels[:, 1])).astype(np.int64), 0, target.depth.shape[0] - 1)
+    normal = target.normals[v, u]
+    valid &= front & np.all(np.isfinite(normal), axis=1)
+    m = int(valid.sum())
+    if m == 0:
+        return 0.0, 0.0, 0, n
+    Q, pixels, depth, normal = Q[valid], pixels[valid], depth[valid], normal[valid]
+    rays = np.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1], np.ones(m)], axis=-1)
+    r_geo = np.sum(normal * (Q - depth[:, None] * rays), axis=1)
+    sigma_geo = settings.depth_sigma_m + settings.depth_sigma_quadratic * depth**2
+    geometric = _geman_mcclure(r_geo, sigma_geo)
+    target_gray, _ = bilinear(target.gray, pixels)
+    source_gray = source.grid_gray[valid]
+    r_photo = (source_gray - source_gray.mean()) - (target_gray - target_gray.mean())
+    photometric = _geman_mcclure(r_photo, settings.photo_sigma)
+    return float(geometric.sum()), float(photometric.sum()), m, n
+
+
+def _geman_mcclure(r: np.ndarray, sigma) -> np.ndarray:
+    r2 = r * r
+    return r2 / (r2 + np.square(sigma))
+
+
+def verify(T: np.ndarray, a: FrameView, b: FrameView, K: np.ndarray, settings: VerifySettings = VerifySettings()) -> Verification:
+    """Score of the transform T (camera a -> camera b); infinite when it leaves no overlap."""
+    if not np.all(np.isfinite(T)):
+        return Verification(float("inf"), float("nan"), float("nan"), 0.0)
+    T_inv = np.linalg.inv(T)
+    g1, p1, m1, n1 = _direction(T, a, b, K, settings)
+    g2, p2, m2, n2 = _direction(T_inv, b, a, K, settings)
+    m = m1 + m2
+    overlap = min(m1 / max(n1, 1), m2 / max(n2, 1))
+    if m == 0:
+        return Verification(float("inf"), float("nan"), float("nan"), overlap)
+    geometric, photometric = (g1 + g2) / m, (p1 + p2) / m
+    score = (geometric + settings.photo_weight * photometric) / (1.0 + settings.photo_weight)
+    return Verification(score, geometric, photometric, overlap)
