@@ -344,7 +344,7 @@ def deblur(
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
-    holdout: Annotated[Optional[str], typer.Option(help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
+    holdout: Annotated[Optional[str], typer.Option(help="Hold out every N-th frame as a test view, 'none', or 'sharpest' (the sharpest of every N frames; for real data).")] = None,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
     from .io.sequence import load_sequence
@@ -352,8 +352,10 @@ def deblur(
 
     sequence = load_sequence(sequence_folder(out))
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
-    changes: dict[str, int] = {} if k is None else {"k": k}
-    if holdout is not None:
+    changes: dict[str, int | str] = {} if k is None else {"k": k}
+    if holdout is not None and holdout.strip().lower() == "sharpest":
+        changes["holdout"] = "sharpest"
+    elif holdout is not None:
         changes["holdout_every"] = _holdout_every(holdout)
     config = dataclasses.replace(config, **changes)
     _init_backend()

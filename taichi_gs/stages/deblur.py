@@ -3,7 +3,8 @@ renders at virtual poses ``T_t exp((1 - tau) d_s + tau d_e)``, tau in linspace(0
 its exposure start and end; the loss is (1 - l_B) L1 + l_B D-SSIM of that mean against the input,
 plus l_D times the masked depth L1 of the mid-exposure render. All Gaussian parameters (with
 3DGS-style densification and pruning) and both exposure offsets of every training frame are
-trained. Every ``holdout_every``-th frame (1, 1 + h, ...) is held out; its camera comes from
+trained. Every ``holdout_every``-th frame (1, 1 + h, ...) is held out (or, with ``holdout =
+"sharpest"``, the sharpest frame of each window of h frames, for real data); its camera comes from
 stage 2 and, optionally, a test-time refinement of its own exposure against its blurred frame with
 the scene frozen (no ground truth places a camera).
 """
@@ -27,6 +28,7 @@ from ..io.ply import read_splats, write_splats
 from ..io.sequence import Sequence
 from ..io.trajectory import format_tum, read_tum, write_tum
 from ..io.images import encode_depth, to_uint8, write_png
+from ..noreference import gradient_energy, sharpest_holdout
 from ..plots import image_grid, line_plot
 from ..render import virtual_pose
 from ..splats import Splats
@@ -38,7 +40,8 @@ class DeblurConfig:
     """Every number stage 3 uses; defaults follow the method and 3DGS (`paper` preset)."""
 
     k: int = 15  # virtual sharp views per exposure
-    holdout_every: int = 3  # every h-th frame is a test view; 0 = train on all
+    holdout_every: int = 3  # one test view per h frames; 0 = train on all
+    holdout: str = "every"  # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data)
     iterations: int = 30000
     lambda_dssim: float = 0.2  # l_B
     lambda_depth: float = 0.1  # l_D
@@ -108,6 +111,20 @@ def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int
         raise InputError(None, f"no training frames left with holdout_every={holdout_every}",
                          "use --holdout none or a larger value")
     return train, test
+
+
+def choose_split(colors: list[np.ndarray], holdout: str, holdout_every: int) -> tuple[list[int], list[int], list[float]]:
+    """(train, test, sharpness): ``holdout`` "every" takes :func:`split_frames`; "sharpest" holds out
+    the sharpest frame (``noreference.gradient_energy``) of each window of ``holdout_every`` frames."""
+    sharpness = [gradient_energy(c) for c in colors]
+    if holdout == "every":
+        return (*split_frames(len(colors), holdout_every), sharpness)
+    if holdout != "sharpest":
+        raise InputError(None, f"unknown holdout mode {holdout!r}", 'set [deblur] holdout to "every" or "sharpest"')
+    if holdout_every == 1 or len(colors) < 2:
+        raise InputError(None, f"cannot hold out the sharpest of every {holdout_every} of {len(colors)} frames",
+                         "use holdout_every >= 2 (or 0) and at least 2 frames")
+    return (*sharpest_holdout(sharpness, holdout_every), sharpness)
 
 
 def load_stage2(out_dir: Path, n_frames: int) -> tuple[np.ndarray, Splats]:
@@ -241,8 +258,8 @@ def run_deblur(
     poses, splats = load_stage2(out_dir, len(sequence))
     stage_dir = out_dir / "deblur"
     stage_dir.mkdir(parents=True, exist_ok=True)
-    train, test = split_frames(len(sequence), config.holdout_every)
     frames = _load_frames(sequence, config.resolution_scale)
+    train, test, sharpness = choose_split(frames.colors, config.holdout, config.holdout_every)
     height, width = frames.colors[0].shape[:2]
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
@@ -292,7 +309,7 @@ def run_deblur(
         train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
         warnings=warnings,
     )
-    _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config)
+    _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config, sharpness)
     if checkpoint.is_file():
         checkpoint.unlink()
     return result
@@ -363,14 +380,15 @@ def _load_checkpoint(path: Path, config: DeblurConfig, model: BlurScene, exposur
 
 
 def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   result: DeblurResult, config: DeblurConfig) -> None:
+                   result: DeblurResult, config: DeblurConfig, sharpness: list[float]) -> None:
     write_splats(stage_dir / "splats.ply", splats)
     write_tum(stage_dir / "trajectory.txt", sequence.timestamps, result.mid_poses,
               header="taichi-gs stage 3 (deblur), mid-exposure camera-to-world")
     write_text(stage_dir / "exposure.txt", _format_exposure(sequence.timestamps, result.exposure))
     write_text(stage_dir / "split.json", json.dumps({"train": result.train, "test": result.test,
-                                                     "holdout_every": config.holdout_every}, indent=2) + "\n")
-    _write_renders(stage_dir, sequence, splats, poses, offsets, config)
+                                                     "holdout_every": config.holdout_every, "holdout": config.holdout,
+                                                     "gradient_energy": sharpness}, indent=2) + "\n")
+    _write_renders(stage_dir, sequence, splats, poses, offsets, config, result.test)
     history = result.loss_history
     if history:
         it = np.array([h["iteration"] for h in history], dtype=float)
@@ -389,14 +407,14 @@ def _format_exposure(timestamps: np.ndarray, exposure: np.ndarray) -> str:
 
 
 def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   config: DeblurConfig) -> None:
+                   config: DeblurConfig, test: list[int]) -> None:
     """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame, and a grid."""
     first = sequence.color(0)
     full = BlurScene(splats, sequence.K(), first.shape[1], first.shape[0])
     scale = sequence.intrinsics.depth_scale
     rows, names = [], []
     has_truth = sequence.sharp_paths is not None
-    grid_frames = set(_grid_frames(len(sequence), config))
+    grid_frames = set(_grid_frames(len(sequence), test, config.grid_frames))
     for i, name in enumerate(sequence.names):
         sharp, depth = full.render(virtual_pose(poses[i], *offsets[i], 0.5))
         reblurred = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], config.k)
@@ -410,9 +428,8 @@ def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     image_grid(stage_dir / "grid.png", rows, titles, names, min_width=0)
 
 
-def _grid_frames(n_frames: int, config: DeblurConfig) -> list[int]:
+def _grid_frames(n_frames: int, test: list[int], count: int) -> list[int]:
     """A few frames spread over the sequence, test views first when there are any."""
-    test = split_frames(n_frames, config.holdout_every)[1]
     pool = test or list(range(n_frames))
-    picks = np.linspace(0, len(pool) - 1, min(config.grid_frames, len(pool))).round().astype(int)
+    picks = np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)
     return [pool[p] for p in sorted(set(picks))]
