@@ -29,6 +29,7 @@ from ..io.sequence import Sequence
 from ..io.trajectory import format_tum, read_tum, write_tum
 from ..io.images import encode_depth, to_uint8, write_png
 from ..noreference import gradient_energy, sharpest_holdout
+from ..photometric import IDENTITY, apply_affine, identity_penalty
 from ..plots import image_grid, line_plot
 from ..render import virtual_pose
 from ..splats import Splats
@@ -72,6 +73,15 @@ class DeblurConfig:
     resolution_scale: int = 1  # train at 1/scale of the input resolution; outputs are full size
     seed: int = 0
     checkpoint_every: int = 1000
+    # [ours] a trained affine colour transform (3 x 4) per frame on the re-blurred render (exposure and
+    # white-balance changes of real cameras), pulled to identity by lambda_colour_affine |M - I|^2
+    colour_affine: bool = False
+    lr_colour_affine: float = 0.005
+    lambda_colour_affine: float = 0.01
+    # [ours] schedule: iterations = max(iterations, iterations_per_view x training views), with the
+    # densification and exposure windows stretched alike (0 = fixed iterations)
+    iterations_per_view: int = 0
+    epoch_sampling: bool = False  # [ours] visit training views in shuffled epochs instead of at random
     grid_frames: int = 4
 
 
@@ -111,6 +121,28 @@ def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int
         raise InputError(None, f"no training frames left with holdout_every={holdout_every}",
                          "use --holdout none or a larger value")
     return train, test
+
+
+def scaled_schedule(config: DeblurConfig, n_train: int) -> DeblurConfig:
+    """``config`` with ``iterations`` raised to ``iterations_per_view`` x ``n_train`` when that is more,
+    and the iteration counts of its densification and exposure windows scaled by the same factor."""
+    wanted = config.iterations_per_view * n_train
+    if wanted <= config.iterations:
+        return config
+    factor = wanted / config.iterations
+    return dataclasses.replace(
+        config, iterations=wanted, densify_from=round(config.densify_from * factor),
+        densify_until=round(config.densify_until * factor), densify_every=max(1, round(config.densify_every * factor)),
+        exposure_from=round(config.exposure_from * factor), iterations_per_view=0)
+
+
+def training_frame(train: list[int], iteration: int, rng: np.random.Generator, seed: int, epochs: bool) -> int:
+    """The frame trained at ``iteration``: uniform at random, or (``epochs``) every training view once
+    per epoch of len(train) iterations, in an order that depends only on ``seed`` and the epoch."""
+    if not epochs:
+        return train[int(rng.integers(len(train)))]
+    epoch, place = divmod(iteration, len(train))
+    return train[int(np.random.default_rng([seed, epoch]).permutation(len(train))[place])]
 
 
 def choose_split(colors: list[np.ndarray], holdout: str, holdout_every: int) -> tuple[list[int], list[int], list[float]]:
@@ -184,15 +216,17 @@ def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, 
 
 
 class ExposureAdam:
-    """Adam on the (N, 2, 6) exposure offsets, one frame at a time, on the host."""
+    """Adam on per-frame host parameters (the (N, 2, 6) exposure offsets, or N colour transforms of
+    ``shape``), one frame at a time."""
 
-    def __init__(self, n_frames: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8):
-        self.moments = np.zeros((n_frames, 2, 2, 6))
+    def __init__(self, n_frames: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8,
+                 shape: tuple[int, ...] = (2, 6)):
+        self.moments = np.zeros((n_frames, 2, *shape))
         self.steps = np.zeros(n_frames, dtype=np.int64)
         self.beta1, self.beta2, self.eps = beta1, beta2, eps
 
     def step(self, d: np.ndarray, grad: np.ndarray, frame: int, lr: float) -> np.ndarray:
-        """Updated (2, 6) offsets of ``frame`` given their gradient."""
+        """Updated parameters (e.g. (2, 6) offsets) of ``frame`` given their gradient."""
         self.steps[frame] += 1
         t = self.steps[frame]
         m, v = self.moments[frame]
@@ -260,6 +294,7 @@ def run_deblur(
     stage_dir.mkdir(parents=True, exist_ok=True)
     frames = _load_frames(sequence, config.resolution_scale)
     train, test, sharpness = choose_split(frames.colors, config.holdout, config.holdout_every)
+    config = scaled_schedule(config, len(train))
     height, width = frames.colors[0].shape[:2]
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
@@ -267,28 +302,34 @@ def run_deblur(
     start = initial_offsets(poses, config.initial_exposure_fraction)
     offsets = start.copy()
     exposure_adam = ExposureAdam(len(sequence))
+    colours = np.repeat(IDENTITY[None], len(sequence), axis=0)
+    colour_adam = ExposureAdam(len(sequence), shape=(3, 4))
     rng = np.random.default_rng(config.seed)
     history: list[dict[str, float]] = []
     first = 0
 
     checkpoint = stage_dir / "checkpoint.npz"
     if checkpoint.is_file():
-        first, offsets, rng, history = _load_checkpoint(checkpoint, config, model, exposure_adam, offsets, rng, history)
+        first, offsets, rng, history = _load_checkpoint(checkpoint, config, model, exposure_adam, offsets, rng, history,
+                                                        colours, colour_adam)
 
     t0 = time.perf_counter()
     for it in range(first, config.iterations):
         fraction = it / max(config.iterations - 1, 1)
-        frame = train[int(rng.integers(len(train)))]
+        frame = training_frame(train, it, rng, config.seed, config.epoch_sampling)
         rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
                       quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
                       colors=config.lr_colors)
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
-                          config.k, config.lambda_dssim, config.lambda_depth, rates)
+                          config.k, config.lambda_dssim, config.lambda_depth, rates,
+                          colours[frame] if config.colour_affine else None)
         _check_finite(step, it)
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
             updated = exposure_adam.step(offsets[frame], np.stack([step.grad_start, step.grad_end]), frame, lr_exposure)
             offsets[frame] = keep_open(updated, start[frame], config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
+            if config.colour_affine:
+                colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
         loss = (1 - config.lambda_dssim) * step.losses["l1"] + config.lambda_dssim * step.losses["dssim"] \
             + config.lambda_depth * step.losses["depth"]
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
@@ -297,11 +338,12 @@ def run_deblur(
         if progress is not None:
             progress(it + 1, config.iterations, loss=loss, psnr=step.psnr, gaussians=model.count)
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < config.iterations:
-            _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history)
+            _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history, colours, colour_adam)
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
     for frame in test:
-        offsets[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame], frame, config)
+        offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
+                                                               frame, config)
     warnings = _step_warnings(offsets, train, frames, config)
     result = DeblurResult(
         mid_poses=np.stack([virtual_pose(poses[i], *offsets[i], 0.5) for i in range(len(sequence))]),
@@ -309,7 +351,8 @@ def run_deblur(
         train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
         warnings=warnings,
     )
-    _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config, sharpness)
+    _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config, sharpness,
+                   colours if config.colour_affine else None)
     if checkpoint.is_file():
         checkpoint.unlink()
     return result
@@ -332,17 +375,27 @@ def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: fl
         model.reset_opacity(0.01)
 
 
+def _colour_step(adam: ExposureAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:
+    """One Adam step of a frame's affine colour transform on its loss gradient plus the identity pull."""
+    _, pull = identity_penalty(M, config.lambda_colour_affine)
+    return adam.step(M, grad + pull, frame, config.lr_colour_affine)
+
+
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
-                          frame: int, config: DeblurConfig) -> np.ndarray:
-    """Fit a held-out frame's exposure offsets, scene frozen, by re-blurring against its blurred input."""
-    adam = ExposureAdam(1)
+                          frame: int, config: DeblurConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Fit a held-out frame's exposure offsets (and, with ``colour_affine``, its colour transform),
+    scene frozen, by re-blurring against its blurred input."""
+    adam, colour_adam = ExposureAdam(1), ExposureAdam(1, shape=(3, 4))
+    colour = IDENTITY.copy()
     for it in range(config.test_pose_iterations):
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], config.k,
-                          config.lambda_dssim, 0.0, rates=None)
+                          config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None)
         _check_finite(step, it)
         d = adam.step(d, np.stack([step.grad_start, step.grad_end]), 0, config.lr_test_pose)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
-    return d
+        if config.colour_affine:
+            colour = _colour_step(colour_adam, colour, step.grad_colour, 0, config)
+    return d, colour
 
 
 def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, config: DeblurConfig) -> list[str]:
@@ -358,21 +411,28 @@ def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, confi
 
 
 def _save_checkpoint(path: Path, iteration: int, config: DeblurConfig, model: BlurScene, exposure_adam: ExposureAdam,
-                     offsets: np.ndarray, rng: np.random.Generator, history: list[dict[str, float]]) -> None:
+                     offsets: np.ndarray, rng: np.random.Generator, history: list[dict[str, float]],
+                     colours: np.ndarray, colour_adam: ExposureAdam) -> None:
     arrays = {f"model_{k}": v for k, v in model.state().items()}
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, iteration=iteration, config=json.dumps(dataclasses.asdict(config)), offsets=offsets,
                      exposure_moments=exposure_adam.moments, exposure_steps=exposure_adam.steps,
-                     rng=json.dumps(rng.bit_generator.state), history=json.dumps(history), **arrays)
+                     rng=json.dumps(rng.bit_generator.state), history=json.dumps(history), colours=colours,
+                     colour_moments=colour_adam.moments, colour_steps=colour_adam.steps, **arrays)
 
 
 def _load_checkpoint(path: Path, config: DeblurConfig, model: BlurScene, exposure_adam: ExposureAdam, offsets: np.ndarray,
-                     rng: np.random.Generator, history: list) -> tuple[int, np.ndarray, np.random.Generator, list]:
-    """Resume state from a checkpoint made with the same config (else start afresh)."""
+                     rng: np.random.Generator, history: list, colours: np.ndarray,
+                     colour_adam: ExposureAdam) -> tuple[int, np.ndarray, np.random.Generator, list]:
+    """Resume state from a checkpoint made with the same config (else start afresh); ``colours`` and
+    ``colour_adam`` are filled in place."""
     state = np.load(path, allow_pickle=False)
-    if json.loads(str(state["config"])) != dataclasses.asdict(config) or state["offsets"].shape != offsets.shape:
+    if (json.loads(str(state["config"])) != dataclasses.asdict(config) or state["offsets"].shape != offsets.shape
+            or "colours" not in state.files):
         return 0, offsets, rng, history
+    colours[:] = state["colours"]
+    colour_adam.moments, colour_adam.steps = state["colour_moments"].copy(), state["colour_steps"].copy()
     model.load_state({k[6:]: state[k] for k in state.files if k.startswith("model_")})
     exposure_adam.moments, exposure_adam.steps = state["exposure_moments"].copy(), state["exposure_steps"].copy()
     rng.bit_generator.state = json.loads(str(state["rng"]))
@@ -380,7 +440,8 @@ def _load_checkpoint(path: Path, config: DeblurConfig, model: BlurScene, exposur
 
 
 def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   result: DeblurResult, config: DeblurConfig, sharpness: list[float]) -> None:
+                   result: DeblurResult, config: DeblurConfig, sharpness: list[float],
+                   colours: np.ndarray | None) -> None:
     write_splats(stage_dir / "splats.ply", splats)
     write_tum(stage_dir / "trajectory.txt", sequence.timestamps, result.mid_poses,
               header="taichi-gs stage 3 (deblur), mid-exposure camera-to-world")
@@ -388,7 +449,11 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     write_text(stage_dir / "split.json", json.dumps({"train": result.train, "test": result.test,
                                                      "holdout_every": config.holdout_every, "holdout": config.holdout,
                                                      "gradient_energy": sharpness}, indent=2) + "\n")
-    _write_renders(stage_dir, sequence, splats, poses, offsets, config, result.test)
+    if colours is not None:
+        write_text(stage_dir / "colour_affine.json", json.dumps(
+            {"rows": "out = M[:, :3] @ rgb + M[:, 3]", "frames": {n: colours[i].round(6).tolist()
+                                                                  for i, n in enumerate(sequence.names)}}) + "\n")
+    _write_renders(stage_dir, sequence, splats, poses, offsets, config, result.test, colours)
     history = result.loss_history
     if history:
         it = np.array([h["iteration"] for h in history], dtype=float)
@@ -407,8 +472,9 @@ def _format_exposure(timestamps: np.ndarray, exposure: np.ndarray) -> str:
 
 
 def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   config: DeblurConfig, test: list[int]) -> None:
-    """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame, and a grid."""
+                   config: DeblurConfig, test: list[int], colours: np.ndarray | None) -> None:
+    """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame, and a grid;
+    with per-frame ``colours`` the colour renders are in each frame's own colour (its transform applied)."""
     first = sequence.color(0)
     full = BlurScene(splats, sequence.K(), first.shape[1], first.shape[0])
     scale = sequence.intrinsics.depth_scale
@@ -418,6 +484,8 @@ def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     for i, name in enumerate(sequence.names):
         sharp, depth = full.render(virtual_pose(poses[i], *offsets[i], 0.5))
         reblurred = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], config.k)
+        if colours is not None:
+            sharp, reblurred = apply_affine(sharp, colours[i]), apply_affine(reblurred, colours[i])
         write_png(stage_dir / "renders" / "sharp" / f"{name}.png", to_uint8(sharp))
         write_png(stage_dir / "renders" / "reblurred" / f"{name}.png", to_uint8(reblurred))
         write_png(stage_dir / "renders" / "depth" / f"{name}.png", encode_depth(depth, scale))
