@@ -12,7 +12,7 @@ import numpy as np
 from .geometry import raster_intrinsics
 from .photometric import affine_backward, apply_affine
 from .render import Adam, Camera, DeviceGaussians, Rasterizer, blur, exposure_pose_gradients, losses, to_device, virtual_pose
-from .splats import Splats, logit
+from .splats import Splats, logit, rgb_to_sh_dc
 
 TRAINED = ("means", "quats", "log_scales", "opacity_logits", "colors")
 
@@ -157,6 +157,28 @@ class BlurScene:
         divided by alpha (the expected depth of what the pixel sees), 0 where alpha < ``min_alpha``."""
         rgb, depth, alpha = self.rasterizer.forward(self.gaussians, self.camera(cam_to_world)).to_numpy()
         return rgb, np.where(alpha >= min_alpha, depth / np.maximum(alpha, min_alpha), 0.0).astype(np.float32)
+
+    def coverage(self, cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(depth, alpha) at one pose as NumPy: depth as :meth:`render` gives it, alpha the accumulated opacity."""
+        _, depth, alpha = self.rasterizer.forward(self.gaussians, self.camera(cam_to_world)).to_numpy()
+        return np.where(alpha >= 0.01, depth / np.maximum(alpha, 0.01), 0.0), alpha
+
+    def add_gaussians(self, means: np.ndarray, rgb: np.ndarray, radius: np.ndarray, opacity: float) -> None:
+        """Append isotropic Gaussians (centres (M, 3), colours (M, 3) in [0, 1], radii (M,) metres) with
+        zero Adam moments; higher SH bands start at 0."""
+        a, moments = self.arrays(), self._moments()
+        m = len(means)
+        sh = np.zeros((m,) + a["colors"].shape[1:], np.float32)
+        sh[:, 0] = rgb_to_sh_dc(np.clip(rgb, 0.0, 1.0))
+        new = {"means": np.asarray(means, np.float32), "quats": np.tile(np.float32([1, 0, 0, 0]), (m, 1)),
+               "log_scales": np.repeat(np.log(np.asarray(radius, np.float32))[:, None], 3, axis=1),
+               "opacity_logits": np.full(m, logit(opacity), np.float32), "colors": sh}
+        merged = {name: np.concatenate([a[name], new[name].astype(a[name].dtype)]) for name in TRAINED}
+        moments = {name: tuple(np.concatenate([mv, np.zeros_like(new[name], dtype=mv.dtype)]) for mv in moments[name])
+                   for name in TRAINED}
+        self._build(merged, moments, self.adam.t)
+        self.grad_sum = np.concatenate([self.grad_sum, np.zeros(m)])
+        self.grad_count = np.concatenate([self.grad_count, np.zeros(m)])
 
     def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int) -> np.ndarray:
         """The k-view average (H, W, 3) over an exposure, as NumPy."""

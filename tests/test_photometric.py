@@ -67,3 +67,42 @@ def test_epoch_sampling_visits_every_view_once_per_epoch():
         seen = [training_frame(train, epoch * 5 + i, rng, seed=4, epochs=True) for i in range(5)]
         assert sorted(seen) == train
     assert training_frame(train, 7, rng, 4, True) == training_frame(train, 7, np.random.default_rng(9), 4, True)
+
+
+def test_nearest_filled_takes_the_closest_valid_depth():
+    from taichi_gs.stages.deblur import nearest_filled
+
+    depth = np.zeros((5, 7))
+    depth[:, 0], depth[:, 6] = 1.0, 3.0
+    filled = nearest_filled(depth)
+    assert np.all(filled[:, :3] == 1.0) and np.all(filled[:, 4:] == 3.0)
+    assert np.all(nearest_filled(np.zeros((3, 3))) == 0.0)
+
+
+def test_uncovered_pixels_get_gaussians_at_the_nearest_depth():
+    from taichi_gs.deblur_model import BlurScene
+    from taichi_gs.kernels import runtime
+    from taichi_gs.splats import Splats, logit, rgb_to_sh_dc
+    from taichi_gs.stages.deblur import fill_uncovered
+
+    runtime.init()
+    w, h, f = 40, 30, 40.0
+    K = np.array([[f, 0, 19.5], [0, f, 14.5], [0, 0, 1]])
+    ys, xs = np.mgrid[-0.75:0.76:0.05, -1.0:0.01:0.05]  # a wall at z = 2 covering the left half
+    n = xs.size
+    means = np.stack([xs.ravel(), ys.ravel(), np.full(n, 2.0)], axis=1)
+    splats = Splats(means.astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                    np.full((n, 3), np.log(0.04), np.float32), np.full(n, logit(0.9), np.float32),
+                    np.tile(rgb_to_sh_dc([0.5, 0.5, 0.5])[None, None], (n, 1, 1)))
+    model = BlurScene(splats, K, w, h)
+    _, alpha = model.coverage(np.eye(4))
+    assert alpha[:, :15].mean() > 0.9 and alpha[:, 25:].mean() < 0.05
+    color = np.full((h, w, 3), 0.8, np.float32)
+    sensor = np.zeros((h, w), np.float32)  # no sensor depth at all: the wall's rendered depth is used
+    added = fill_uncovered(model, color, sensor, np.eye(4), K, 2, 10_000, np.random.default_rng(0))
+    assert added == model.count - n and added >= 0.4 * (w * h / 4)
+    new = model.arrays()["means"][n:]
+    assert np.allclose(new[:, 2], 2.0, atol=0.02) and new[:, 0].max() > 0.5
+    rgb, _ = model.render(np.eye(4))
+    _, alpha = model.coverage(np.eye(4))
+    assert alpha[:, 25:].mean() > 0.9 and np.allclose(rgb[:, 30:].mean(), 0.8 * alpha[:, 30:].mean(), atol=0.05)

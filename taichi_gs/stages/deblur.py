@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..deblur_model import BlurScene, Rates
@@ -82,6 +83,12 @@ class DeblurConfig:
     # densification and exposure windows stretched alike (0 = fixed iterations)
     iterations_per_view: int = 0
     epoch_sampling: bool = False  # [ours] visit training views in shuffled epochs instead of at random
+    # [ours] at each densification, in fill_frames random training views, add a Gaussian every
+    # fill_stride pixels where the render's alpha is below 0.5 (no Gaussians: depth holes of the
+    # sensor), at the view's sensor depth, else the scene's rendered depth, else the nearest such depth
+    fill_uncovered: bool = False
+    fill_frames: int = 2
+    fill_stride: int = 2
     grid_frames: int = 4
 
 
@@ -335,6 +342,10 @@ def run_deblur(
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
         _adapt_density(model, it + 1, config, extent, rng)
+        if config.fill_uncovered and _densifies(it + 1, config):
+            for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
+                fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
+                               frames.K, config.fill_stride, config.max_gaussians, rng)
         if progress is not None:
             progress(it + 1, config.iterations, loss=loss, psnr=step.psnr, gaussians=model.count)
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < config.iterations:
@@ -364,10 +375,50 @@ def _check_finite(step, iteration: int) -> None:
         raise FloatingPointError(f"stage 3 (deblur) diverged at iteration {iteration}: non-finite loss or gradient")
 
 
+def _densifies(done: int, config: DeblurConfig) -> bool:
+    return config.densify_from <= done <= config.densify_until and done % config.densify_every == 0
+
+
+def nearest_filled(depth: np.ndarray) -> np.ndarray:
+    """``depth`` with every 0 replaced by the nearest (L2) positive value; all zeros stay zeros."""
+    valid = depth > 0
+    if valid.all() or not valid.any():
+        return depth
+    _, labels = cv2.distanceTransformWithLabels((~valid).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    lookup = np.zeros(labels.max() + 1, depth.dtype)
+    lookup[labels[valid]] = depth[valid]
+    return lookup[labels]
+
+
+def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_to_world: np.ndarray, K: np.ndarray,
+                   stride: int, max_gaussians: int, rng: np.random.Generator) -> int:
+    """Add Gaussians where the render of a view has alpha < 0.5: one per ``stride`` pixels (a random
+    phase), coloured by the input, at the sensor depth, else the scene's rendered depth (alpha >= 0.5),
+    else the nearest pixel's such depth; radius (sigma) the stride's footprint. Returns how many."""
+    rendered, alpha = model.coverage(cam_to_world)
+    known = np.where(depth > 0, depth, np.where(alpha >= 0.5, rendered, 0.0))
+    grid = np.zeros(alpha.shape, bool)
+    oy, ox = rng.integers(stride, size=2)
+    grid[oy::stride, ox::stride] = True
+    v, u = np.nonzero((alpha < 0.5) & grid)
+    room = max(max_gaussians - model.count, 0)
+    if len(v) == 0 or room == 0 or not (known > 0).any():
+        return 0
+    if len(v) > room:
+        keep = rng.choice(len(v), size=room, replace=False)
+        v, u = v[keep], u[keep]
+    z = nearest_filled(known)[v, u].astype(np.float64)
+    points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
+    model.add_gaussians(points @ cam_to_world[:3, :3].T + cam_to_world[:3, 3], color[v, u],
+                        stride * z / K[0, 0], opacity=0.5)
+    return len(v)
+
+
 def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: float, rng: np.random.Generator) -> None:
     """3DGS's schedule: densify and prune every ``densify_every`` iterations in the densification
     window; reset opacities every ``reset_opacity_every`` iterations inside it."""
-    if config.densify_from <= done <= config.densify_until and done % config.densify_every == 0:
+    if _densifies(done, config):
         # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
         model.densify_and_prune(config.densify_grad * 2.0 / model.width, config.split_scale * extent,
                                 config.prune_opacity, config.prune_scale * extent, config.max_gaussians, rng)
