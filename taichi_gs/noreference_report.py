@@ -41,7 +41,7 @@ def protocol_text(split: dict[str, Any]) -> str:
     """One line naming how the held-out views were chosen and what they are scored against."""
     every = split.get("holdout_every", 0)
     if split.get("holdout") == "sharpest":
-        chosen = (f"held-out views: the sharpest frame (gradient energy after a sigma-1 Gaussian) of each "
+        chosen = (f"held-out views: the sharpest frame (variance of the Laplacian) of each "
                   f"window of {every} frames")
     elif every:
         chosen = f"held-out views: frames 1, 1 + {every}, 1 + 2 x {every}, ... (not chosen by sharpness)"

@@ -14,7 +14,7 @@ from taichi_gs.evaluate import psnr
 from taichi_gs.io.images import to_uint8, write_png
 from taichi_gs.io.trajectory import write_tum
 from taichi_gs.noreference import (
-    dark_hole_fraction, gradient_energy, masked_psnr, masked_ssim, sharpest_holdout, warp_to_view,
+    dark_hole_fraction, gradient_energy, laplacian_variance, masked_psnr, masked_ssim, sharpest_holdout, warp_to_view,
 )
 from taichi_gs.stages.deblur import choose_split
 
@@ -36,6 +36,8 @@ def test_gradient_energy_of_a_ramp_is_its_slope_squared():
 def test_gradient_energy_scales_with_contrast_and_falls_with_blur():
     image = texture()
     assert gradient_energy(0.5 * image) == pytest.approx(0.25 * gradient_energy(image), rel=1e-9)
+    assert laplacian_variance(0.5 * image) == pytest.approx(0.25 * laplacian_variance(image), rel=1e-9)
+    assert laplacian_variance(np.full((10, 10, 3), 0.7)) == pytest.approx(0.0, abs=1e-20)
     blurred = [cv2.GaussianBlur(image, (0, 0), s) for s in (1.0, 2.0, 3.0)]
     energies = [gradient_energy(image)] + [gradient_energy(b) for b in blurred]
     assert all(a > b for a, b in zip(energies, energies[1:]))
@@ -117,7 +119,7 @@ def test_protocol_on_a_run_whose_renders_are_the_truth(tmp_path):
     write_tum(stage / "trajectory.txt", sequence.timestamps, sequence.gt_poses)
     train, test, sharpness = choose_split([sequence.color(i) for i in range(6)], "sharpest", 3)
     (stage / "split.json").write_text(json.dumps({"train": train, "test": test, "holdout": "sharpest",
-                                                  "holdout_every": 3, "gradient_energy": sharpness}))
+                                                  "holdout_every": 3, "laplacian_variance": sharpness}))
     metrics = no_reference_metrics(tmp_path / "run", sequence)
     assert "sharpest frame" in metrics["protocol"]
     held = metrics["test"]

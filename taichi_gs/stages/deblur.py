@@ -29,7 +29,7 @@ from ..io.ply import read_splats, write_splats
 from ..io.sequence import Sequence
 from ..io.trajectory import format_tum, read_tum, write_tum
 from ..io.images import encode_depth, to_uint8, write_png
-from ..noreference import gradient_energy, sharpest_holdout
+from ..noreference import laplacian_variance, sharpest_holdout
 from ..photometric import IDENTITY, apply_affine, identity_penalty
 from ..plots import image_grid, line_plot
 from ..render import virtual_pose
@@ -154,8 +154,8 @@ def training_frame(train: list[int], iteration: int, rng: np.random.Generator, s
 
 def choose_split(colors: list[np.ndarray], holdout: str, holdout_every: int) -> tuple[list[int], list[int], list[float]]:
     """(train, test, sharpness): ``holdout`` "every" takes :func:`split_frames`; "sharpest" holds out
-    the sharpest frame (``noreference.gradient_energy``) of each window of ``holdout_every`` frames."""
-    sharpness = [gradient_energy(c) for c in colors]
+    the sharpest frame (``noreference.laplacian_variance``) of each window of ``holdout_every`` frames."""
+    sharpness = [laplacian_variance(c) for c in colors]
     if holdout == "every":
         return (*split_frames(len(colors), holdout_every), sharpness)
     if holdout != "sharpest":
@@ -499,7 +499,7 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     write_text(stage_dir / "exposure.txt", _format_exposure(sequence.timestamps, result.exposure))
     write_text(stage_dir / "split.json", json.dumps({"train": result.train, "test": result.test,
                                                      "holdout_every": config.holdout_every, "holdout": config.holdout,
-                                                     "gradient_energy": sharpness}, indent=2) + "\n")
+                                                     "laplacian_variance": sharpness}, indent=2) + "\n")
     if colours is not None:
         write_text(stage_dir / "colour_affine.json", json.dumps(
             {"rows": "out = M[:, :3] @ rgb + M[:, 3]", "frames": {n: colours[i].round(6).tolist()
