@@ -481,7 +481,7 @@ def deblur(
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
-    holdout: Annotated[Optional[int], typer.Option(parser=parse_holdout, metavar="N|none", help="Hold out every N-th frame as a test view, or 'none' (default 3).")] = None,
+    holdout: Annotated[Optional[str], typer.Option(metavar="N|none|sharpest", help="Hold out every N-th frame as a test view, 'none', or 'sharpest' (the sharpest of every N frames; for real data).")] = None,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
     from .io.lock import output_lock
@@ -489,9 +489,11 @@ def deblur(
     from .validation import validate_sections
 
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
-    changes: dict[str, int] = {} if k is None else {"k": k}
-    if holdout is not None:
-        changes["holdout_every"] = holdout
+    changes: dict[str, int | str] = {} if k is None else {"k": k}
+    if holdout is not None and holdout.strip().lower() == "sharpest":
+        changes["holdout"] = "sharpest"
+    elif holdout is not None:
+        changes["holdout_every"] = parse_holdout(holdout)
     config = dataclasses.replace(config, **changes)
     validate_sections({"deblur": config})
     sequence = open_run_sequence(out)

@@ -10,8 +10,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import quat_to_rotmat, raster_intrinsics
+from .photometric import affine_backward, apply_affine
 from .render import Adam, Camera, DeviceGaussians, Rasterizer, blur, exposure_pose_gradients, losses, to_device, virtual_pose
-from .splats import Splats, logit
+from .splats import Splats, logit, rgb_to_sh_dc
 
 TRAINED = ("means", "quats", "log_scales", "opacity_logits", "colors")
 
@@ -36,6 +37,7 @@ class BlurStep:
     psnr: float
     grad_start: np.ndarray
     grad_end: np.ndarray
+    grad_colour: np.ndarray | None = None  # (3, 4) when a colour transform was given
 
 
 def exposure_taus(k: int) -> np.ndarray:
@@ -57,6 +59,8 @@ class BlurScene:
         self.frame = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.depth_target = to_device(np.zeros((height, width), np.float32), dtype)
         self.blurred = to_device(np.zeros((height, width, 3), np.float32), dtype)
+        self.compensated = to_device(np.zeros((height, width, 3), np.float32), dtype)
+        self.grad_compensated = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.grad_blur = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.grad_view = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), dtype)
@@ -86,18 +90,30 @@ class BlurScene:
         return views
 
     def step(self, frame: np.ndarray, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
-             k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None) -> BlurStep:
-        """Render the frame's k virtual views, average them, take (1 - l_B) L1 + l_B D-SSIM against
-        ``frame`` plus ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``,
-        back-propagate, and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians."""
+             k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None,
+             colour: np.ndarray | None = None) -> BlurStep:
+        """Render the frame's k virtual views, average them, apply the frame's affine ``colour``
+        transform (3 x 4; None: identity), take (1 - l_B) L1 + l_B D-SSIM against ``frame`` plus
+        ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``, back-propagate,
+        and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians."""
         taus = exposure_taus(k)
         mid = int(np.argmin(np.abs(taus - 0.5)))
         self.frame.from_numpy(np.ascontiguousarray(frame, np.float32))
         views = self._render_exposure(base, d_start, d_end, taus)
         self.grad_blur.fill(0.0)
         self.grad_depth.fill(0.0)
-        l1 = losses.l1(self.blurred, self.frame, self.grad_blur, weight=1.0 - lambda_dssim)
-        dssim = losses.dssim(self.blurred, self.frame, self.grad_blur, weight=lambda_dssim)
+        predicted, grad_predicted = self.blurred, self.grad_blur
+        if colour is not None:
+            blurred = self.blurred.to_numpy()
+            self.compensated.from_numpy(np.ascontiguousarray(apply_affine(blurred, colour), np.float32))
+            self.grad_compensated.fill(0.0)
+            predicted, grad_predicted = self.compensated, self.grad_compensated
+        l1 = losses.l1(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim)
+        dssim = losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim)
+        grad_colour = None
+        if colour is not None:
+            grad_image, grad_colour = affine_backward(blurred, colour, self.grad_compensated.to_numpy())
+            self.grad_blur.from_numpy(np.ascontiguousarray(grad_image, np.float32))
         depth_l1 = 0.0
         if lambda_depth > 0:
             self.depth_target.from_numpy(np.ascontiguousarray(depth, np.float32))
@@ -112,9 +128,9 @@ class BlurScene:
             self._accumulate_densify_stats(virtual_pose(base, d_start, d_end, taus[mid]))
             self.adam.lrs.update(vars(rates))
             self.adam.step(self.count)
-        mse = float(np.mean((np.clip(self.blurred.to_numpy(), 0, 1) - frame) ** 2))
+        mse = float(np.mean((np.clip(predicted.to_numpy(), 0, 1) - frame) ** 2))
         return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
-                        g_start, g_end)
+                        g_start, g_end, grad_colour)
 
     def _accumulate_densify_stats(self, cam_to_world: np.ndarray) -> None:
         """Add each Gaussian's positional gradient, converted to image-plane pixels (|g| z / f)."""
@@ -130,6 +146,28 @@ class BlurScene:
         divided by alpha (the expected depth of what the pixel sees), 0 where alpha < ``min_alpha``."""
         rgb, depth, alpha = self.rasterizer.forward(self.gaussians, self.camera(cam_to_world)).to_numpy()
         return rgb, np.where(alpha >= min_alpha, depth / np.maximum(alpha, min_alpha), 0.0).astype(np.float32)
+
+    def coverage(self, cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(depth, alpha) at one pose as NumPy: depth as :meth:`render` gives it, alpha the accumulated opacity."""
+        _, depth, alpha = self.rasterizer.forward(self.gaussians, self.camera(cam_to_world)).to_numpy()
+        return np.where(alpha >= 0.01, depth / np.maximum(alpha, 0.01), 0.0), alpha
+
+    def add_gaussians(self, means: np.ndarray, rgb: np.ndarray, radius: np.ndarray, opacity: float) -> None:
+        """Append isotropic Gaussians (centres (M, 3), colours (M, 3) in [0, 1], radii (M,) metres) with
+        zero Adam moments; higher SH bands start at 0."""
+        a, moments = self.arrays(), self._moments()
+        m = len(means)
+        sh = np.zeros((m,) + a["colors"].shape[1:], np.float32)
+        sh[:, 0] = rgb_to_sh_dc(np.clip(rgb, 0.0, 1.0))
+        new = {"means": np.asarray(means, np.float32), "quats": np.tile(np.float32([1, 0, 0, 0]), (m, 1)),
+               "log_scales": np.repeat(np.log(np.asarray(radius, np.float32))[:, None], 3, axis=1),
+               "opacity_logits": np.full(m, logit(opacity), np.float32), "colors": sh}
+        merged = {name: np.concatenate([a[name], new[name].astype(a[name].dtype)]) for name in TRAINED}
+        moments = {name: tuple(np.concatenate([mv, np.zeros_like(new[name], dtype=mv.dtype)]) for mv in moments[name])
+                   for name in TRAINED}
+        self._build(merged, moments, self.adam.t)
+        self.grad_sum = np.concatenate([self.grad_sum, np.zeros(m)])
+        self.grad_count = np.concatenate([self.grad_count, np.zeros(m)])
 
     def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int) -> np.ndarray:
         """The k-view average (H, W, 3) over an exposure, as NumPy."""

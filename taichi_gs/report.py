@@ -15,6 +15,7 @@ from .evaluate import align_trajectory, inverse_depth_rmse, match_by_time, psnr,
 from .io.jsonout import finite_or_null, write_json
 from .io.sequence import Sequence, read_color, read_depth
 from .io.trajectory import read_tum
+from .noreference_report import no_reference_metrics
 from .pipeline import iter_stage_records, open_run_sequence
 from .plots import colour_map, colour_scale, image_grid, line_plot, trajectory_plot
 
@@ -64,6 +65,7 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
     metrics = {
         "trajectory": trajectories,
         "images": image_metrics(run_dir, sequence),
+        "no_reference": no_reference_metrics(run_dir, sequence),
         "stages": stages,
         "arch": next((s["arch"] for s in stages.values() if s.get("arch") not in (None, "none")), "none"),
         "versions": _versions(),

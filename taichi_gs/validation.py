@@ -88,7 +88,8 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "densify_every": COUNT, "densify_grad": POSITIVE, "split_scale": POSITIVE, "prune_opacity": FRACTION,
         "prune_scale": POSITIVE, "max_gaussians": COUNT, "reset_opacity_every": OPTIONAL_COUNT,
         "test_pose_iterations": OPTIONAL_COUNT, "resolution_scale": COUNT, "checkpoint_every": COUNT,
-        "grid_frames": OPTIONAL_COUNT,
+        "grid_frames": OPTIONAL_COUNT, "holdout": _one_of("every", "sharpest"), "lambda_colour_affine": NON_NEGATIVE,
+        "iterations_per_view": OPTIONAL_COUNT, "fill_frames": COUNT, "fill_stride": COUNT,
     },
 }
 

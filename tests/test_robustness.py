@@ -138,6 +138,9 @@ def test_eval_reports_images_stages_and_versions(tiny):
     assert test["views"] == 2 and 5 < test["psnr_db"] < 60 and 0 < test["ssim"] <= 1
     assert test["inverse_depth_rmse"] < 0.2
     assert metrics["images"]["lpips"].startswith("unavailable")
+    no_reference = metrics["no_reference"]
+    assert no_reference["test"]["views"] == 2 and no_reference["test"]["reblur_psnr_db"] > 15
+    assert no_reference["protocol"].startswith("held-out views: frames 1, 1 + 3")
     assert metrics["arch"] == "cpu" and "taichi" in metrics["versions"]
     for name in ("trajectory_top.png", "position_error.png", "test_views.png"):
         assert (tiny["reference"] / "report" / name).is_file()

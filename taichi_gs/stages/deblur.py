@@ -3,7 +3,8 @@ renders at virtual poses ``T_t exp((1 - tau) d_s + tau d_e)``, tau in linspace(0
 its exposure start and end; the loss is (1 - l_B) L1 + l_B D-SSIM of that mean against the input,
 plus l_D times the masked depth L1 of the mid-exposure render. All Gaussian parameters (with
 3DGS-style densification and pruning) and both exposure offsets of every training frame are
-trained. Every ``holdout_every``-th frame (1, 1 + h, ...) is held out; its camera comes from
+trained. Every ``holdout_every``-th frame (1, 1 + h, ...) is held out (or, with ``holdout =
+"sharpest"``, the sharpest frame of each window of h frames, for real data); its camera comes from
 stage 2 and, optionally, a test-time refinement of its own exposure against its blurred frame with
 the scene frozen (no ground truth places a camera).
 """
@@ -30,6 +31,8 @@ from ..io.ply import read_splats, write_splats
 from ..io.sequence import Sequence
 from ..io.trajectory import format_tum, read_tum, write_tum
 from ..io.images import encode_depth, to_uint8, write_png
+from ..noreference import laplacian_variance, sharpest_holdout
+from ..photometric import IDENTITY, apply_affine, identity_penalty
 from ..plots import image_grid, line_plot
 from ..render import virtual_pose
 from ..splats import Splats
@@ -45,7 +48,8 @@ class DeblurConfig:
     """Every number stage 3 uses; defaults follow the method and 3DGS (`paper` preset)."""
 
     k: int = 15  # virtual sharp views per exposure
-    holdout_every: int = 3  # every h-th frame is a test view; 0 = train on all
+    holdout_every: int = 3  # one test view per h frames; 0 = train on all
+    holdout: str = "every"  # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data)
     iterations: int = 30000
     lambda_dssim: float = 0.2  # l_B
     lambda_depth: float = 0.1  # l_D
@@ -76,6 +80,21 @@ class DeblurConfig:
     resolution_scale: int = 1  # train at 1/scale of the input resolution; outputs are full size
     seed: int = 0
     checkpoint_every: int = 1000
+    # [ours] a trained affine colour transform (3 x 4) per frame on the re-blurred render (exposure and
+    # white-balance changes of real cameras), pulled to identity by lambda_colour_affine |M - I|^2
+    colour_affine: bool = False
+    lr_colour_affine: float = 0.005
+    lambda_colour_affine: float = 0.01
+    # [ours] schedule: iterations = max(iterations, iterations_per_view x training views), with the
+    # densification and exposure windows stretched alike (0 = fixed iterations)
+    iterations_per_view: int = 0
+    epoch_sampling: bool = False  # [ours] visit training views in shuffled epochs instead of at random
+    # [ours] at each densification, in fill_frames random training views, add a Gaussian every
+    # fill_stride pixels where the render's alpha is below 0.5 (no Gaussians: depth holes of the
+    # sensor), at the view's sensor depth, else the scene's rendered depth, else the nearest such depth
+    fill_uncovered: bool = False
+    fill_frames: int = 2
+    fill_stride: int = 2
     grid_frames: int = 4
 
 
@@ -117,6 +136,42 @@ def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int
         raise InputError(None, f"no training frames left with holdout_every={holdout_every}",
                          "use --holdout none or a larger value")
     return train, test
+
+
+def scaled_schedule(config: DeblurConfig, n_train: int) -> DeblurConfig:
+    """``config`` with ``iterations`` raised to ``iterations_per_view`` x ``n_train`` when that is more,
+    and the iteration counts of its densification and exposure windows scaled by the same factor."""
+    wanted = config.iterations_per_view * n_train
+    if wanted <= config.iterations:
+        return config
+    factor = wanted / config.iterations
+    return dataclasses.replace(
+        config, iterations=wanted, densify_from=round(config.densify_from * factor),
+        densify_until=round(config.densify_until * factor), densify_every=max(1, round(config.densify_every * factor)),
+        exposure_from=round(config.exposure_from * factor), iterations_per_view=0)
+
+
+def training_frame(train: list[int], iteration: int, rng: np.random.Generator, seed: int, epochs: bool) -> int:
+    """The frame trained at ``iteration``: uniform at random, or (``epochs``) every training view once
+    per epoch of len(train) iterations, in an order that depends only on ``seed`` and the epoch."""
+    if not epochs:
+        return train[int(rng.integers(len(train)))]
+    epoch, place = divmod(iteration, len(train))
+    return train[int(np.random.default_rng([seed, epoch]).permutation(len(train))[place])]
+
+
+def choose_split(colors: list[np.ndarray], holdout: str, holdout_every: int) -> tuple[list[int], list[int], list[float]]:
+    """(train, test, sharpness): ``holdout`` "every" takes :func:`split_frames`; "sharpest" holds out
+    the sharpest frame (``noreference.laplacian_variance``) of each window of ``holdout_every`` frames."""
+    sharpness = [laplacian_variance(c) for c in colors]
+    if holdout == "every":
+        return (*split_frames(len(colors), holdout_every), sharpness)
+    if holdout != "sharpest":
+        raise InputError(None, f"unknown holdout mode {holdout!r}", 'set [deblur] holdout to "every" or "sharpest"')
+    if holdout_every == 1 or len(colors) < 2:
+        raise InputError(None, f"cannot hold out the sharpest of every {holdout_every} of {len(colors)} frames",
+                         "use holdout_every >= 2 (or 0) and at least 2 frames")
+    return (*sharpest_holdout(sharpness, holdout_every), sharpness)
 
 
 def load_stage2(out_dir: Path, n_frames: int) -> tuple[np.ndarray, Splats]:
@@ -176,15 +231,17 @@ def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, 
 
 
 class ExposureAdam:
-    """Adam on the (N, 2, 6) exposure offsets, one frame at a time, on the host."""
+    """Adam on per-frame host parameters (the (N, 2, 6) exposure offsets, or N colour transforms of
+    ``shape``), one frame at a time."""
 
-    def __init__(self, n_frames: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8):
-        self.moments = np.zeros((n_frames, 2, 2, 6))
+    def __init__(self, n_frames: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8,
+                 shape: tuple[int, ...] = (2, 6)):
+        self.moments = np.zeros((n_frames, 2, *shape))
         self.steps = np.zeros(n_frames, dtype=np.int64)
         self.beta1, self.beta2, self.eps = beta1, beta2, eps
 
     def step(self, d: np.ndarray, grad: np.ndarray, frame: int, lr: float) -> np.ndarray:
-        """Updated (2, 6) offsets of ``frame`` given their gradient."""
+        """Updated parameters (e.g. (2, 6) offsets) of ``frame`` given their gradient."""
         self.steps[frame] += 1
         t = self.steps[frame]
         m, v = self.moments[frame]
@@ -250,8 +307,9 @@ def run_deblur(
     poses, splats = load_stage2(out_dir, len(sequence))
     stage_dir = out_dir / "deblur"
     stage_dir.mkdir(parents=True, exist_ok=True)
-    train, test = split_frames(len(sequence), config.holdout_every)
     frames = _load_frames(sequence, config.resolution_scale)
+    train, test, sharpness = choose_split(frames.colors, config.holdout, config.holdout_every)
+    config = scaled_schedule(config, len(train))
     height, width = frames.colors[0].shape[:2]
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
@@ -259,34 +317,44 @@ def run_deblur(
     start = initial_offsets(poses, config.initial_exposure_fraction)
     offsets = start.copy()
     exposure_adam = ExposureAdam(len(sequence))
+    colours = np.repeat(IDENTITY[None], len(sequence), axis=0)
+    colour_adam = ExposureAdam(len(sequence), shape=(3, 4))
     rng = np.random.default_rng(config.seed)
     history: list[dict[str, float]] = []
     first = 0
 
     checkpoint = stage_dir / "checkpoint.npz"
     if checkpoint.is_file():
-        first, offsets, rng, history = _load_checkpoint(checkpoint, config, model, exposure_adam, offsets, rng, history)
+        first, offsets, rng, history = _load_checkpoint(checkpoint, config, model, exposure_adam, offsets, rng, history,
+                                                        colours, colour_adam)
 
     guard = DivergenceGuard("stage 3 (deblur)", splats.means.mean(axis=0), extent)
     t0 = time.perf_counter()
     for it in range(first, config.iterations):
         fraction = it / max(config.iterations - 1, 1)
-        frame = train[int(rng.integers(len(train)))]
+        frame = training_frame(train, it, rng, config.seed, config.epoch_sampling)
         rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
                       quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
                       colors=config.lr_colors)
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
-                          config.k, config.lambda_dssim, config.lambda_depth, rates)
+                          config.k, config.lambda_dssim, config.lambda_depth, rates,
+                          colours[frame] if config.colour_affine else None)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
             updated = exposure_adam.step(offsets[frame], np.stack([step.grad_start, step.grad_end]), frame, lr_exposure)
             offsets[frame] = keep_open(updated, start[frame], config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
+            if config.colour_affine:
+                colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
         loss = (1 - config.lambda_dssim) * step.losses["l1"] + config.lambda_dssim * step.losses["dssim"] \
             + config.lambda_depth * step.losses["depth"]
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
         _adapt_density(model, it + 1, config, extent, rng)
+        if config.fill_uncovered and _densifies(it + 1, config):
+            for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
+                fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
+                               frames.K, config.fill_stride, config.max_gaussians, rng)
         if progress is not None:
             progress(it + 1, config.iterations, loss=loss, psnr=step.psnr, gaussians=model.count)
         if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 \
@@ -294,11 +362,12 @@ def run_deblur(
             params = model.arrays()
             guard.check_parameters(it, params["means"], offsets, *params.values())
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < config.iterations:
-            _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history)
+            _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history, colours, colour_adam)
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
     for frame in test:
-        offsets[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame], frame, config)
+        offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
+                                                               frame, config)
     warnings = _step_warnings(offsets, train, frames, config)
     result = DeblurResult(
         mid_poses=np.stack([virtual_pose(poses[i], *offsets[i], 0.5) for i in range(len(sequence))]),
@@ -306,16 +375,57 @@ def run_deblur(
         train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
         warnings=warnings,
     )
-    _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config)
+    _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config, sharpness,
+                   colours if config.colour_affine else None)
     if checkpoint.is_file():
         checkpoint.unlink()
     return result
 
 
+def _densifies(done: int, config: DeblurConfig) -> bool:
+    return config.densify_from <= done <= config.densify_until and done % config.densify_every == 0
+
+
+def nearest_filled(depth: np.ndarray) -> np.ndarray:
+    """``depth`` with every 0 replaced by the nearest (L2) positive value; all zeros stay zeros."""
+    valid = depth > 0
+    if valid.all() or not valid.any():
+        return depth
+    _, labels = cv2.distanceTransformWithLabels((~valid).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    lookup = np.zeros(labels.max() + 1, depth.dtype)
+    lookup[labels[valid]] = depth[valid]
+    return lookup[labels]
+
+
+def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_to_world: np.ndarray, K: np.ndarray,
+                   stride: int, max_gaussians: int, rng: np.random.Generator) -> int:
+    """Add Gaussians where the render of a view has alpha < 0.5: one per ``stride`` pixels (a random
+    phase), coloured by the input, at the sensor depth, else the scene's rendered depth (alpha >= 0.5),
+    else the nearest pixel's such depth; radius (sigma) the stride's footprint. Returns how many."""
+    rendered, alpha = model.coverage(cam_to_world)
+    known = np.where(depth > 0, depth, np.where(alpha >= 0.5, rendered, 0.0))
+    grid = np.zeros(alpha.shape, bool)
+    oy, ox = rng.integers(stride, size=2)
+    grid[oy::stride, ox::stride] = True
+    v, u = np.nonzero((alpha < 0.5) & grid)
+    room = max(max_gaussians - model.count, 0)
+    if len(v) == 0 or room == 0 or not (known > 0).any():
+        return 0
+    if len(v) > room:
+        keep = rng.choice(len(v), size=room, replace=False)
+        v, u = v[keep], u[keep]
+    z = nearest_filled(known)[v, u].astype(np.float64)
+    points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
+    model.add_gaussians(points @ cam_to_world[:3, :3].T + cam_to_world[:3, 3], color[v, u],
+                        stride * z / K[0, 0], opacity=0.5)
+    return len(v)
+
+
 def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: float, rng: np.random.Generator) -> None:
     """3DGS's schedule: densify and prune every ``densify_every`` iterations in the densification
     window; reset opacities every ``reset_opacity_every`` iterations inside it."""
-    if config.densify_from <= done <= config.densify_until and done % config.densify_every == 0:
+    if _densifies(done, config):
         # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
         model.densify_and_prune(config.densify_grad * 2.0 / model.width, config.split_scale * extent,
                                 config.prune_opacity, config.prune_scale * extent, config.max_gaussians, rng)
@@ -323,18 +433,28 @@ def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: fl
         model.reset_opacity(0.01)
 
 
+def _colour_step(adam: ExposureAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:
+    """One Adam step of a frame's affine colour transform on its loss gradient plus the identity pull."""
+    _, pull = identity_penalty(M, config.lambda_colour_affine)
+    return adam.step(M, grad + pull, frame, config.lr_colour_affine)
+
+
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
-                          frame: int, config: DeblurConfig) -> np.ndarray:
-    """Fit a held-out frame's exposure offsets, scene frozen, by re-blurring against its blurred input."""
-    adam = ExposureAdam(1)
+                          frame: int, config: DeblurConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Fit a held-out frame's exposure offsets (and, with ``colour_affine``, its colour transform),
+    scene frozen, by re-blurring against its blurred input."""
+    adam, colour_adam = ExposureAdam(1), ExposureAdam(1, shape=(3, 4))
+    colour = IDENTITY.copy()
     guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
     for it in range(config.test_pose_iterations):
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], config.k,
-                          config.lambda_dssim, 0.0, rates=None)
+                          config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         d = adam.step(d, np.stack([step.grad_start, step.grad_end]), 0, config.lr_test_pose)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
-    return d
+        if config.colour_affine:
+            colour = _colour_step(colour_adam, colour, step.grad_colour, 0, config)
+    return d, colour
 
 
 def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, config: DeblurConfig) -> list[str]:
@@ -352,21 +472,28 @@ def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, confi
 
 
 def _save_checkpoint(path: Path, iteration: int, config: DeblurConfig, model: BlurScene, exposure_adam: ExposureAdam,
-                     offsets: np.ndarray, rng: np.random.Generator, history: list[dict[str, float]]) -> None:
+                     offsets: np.ndarray, rng: np.random.Generator, history: list[dict[str, float]],
+                     colours: np.ndarray, colour_adam: ExposureAdam) -> None:
     arrays = {f"model_{k}": v for k, v in model.state().items()}
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez(f, iteration=iteration, config=json.dumps(dataclasses.asdict(config)), offsets=offsets,
                      exposure_moments=exposure_adam.moments, exposure_steps=exposure_adam.steps,
-                     rng=json.dumps(rng.bit_generator.state), history=json.dumps(history), **arrays)
+                     rng=json.dumps(rng.bit_generator.state), history=json.dumps(history), colours=colours,
+                     colour_moments=colour_adam.moments, colour_steps=colour_adam.steps, **arrays)
 
 
 def _load_checkpoint(path: Path, config: DeblurConfig, model: BlurScene, exposure_adam: ExposureAdam, offsets: np.ndarray,
-                     rng: np.random.Generator, history: list) -> tuple[int, np.ndarray, np.random.Generator, list]:
-    """Resume state from a checkpoint made with the same config (else start afresh)."""
+                     rng: np.random.Generator, history: list, colours: np.ndarray,
+                     colour_adam: ExposureAdam) -> tuple[int, np.ndarray, np.random.Generator, list]:
+    """Resume state from a checkpoint made with the same config (else start afresh); ``colours`` and
+    ``colour_adam`` are filled in place."""
     state = np.load(path, allow_pickle=False)
-    if json.loads(str(state["config"])) != dataclasses.asdict(config) or state["offsets"].shape != offsets.shape:
+    if (json.loads(str(state["config"])) != dataclasses.asdict(config) or state["offsets"].shape != offsets.shape
+            or "colours" not in state.files):
         return 0, offsets, rng, history
+    colours[:] = state["colours"]
+    colour_adam.moments, colour_adam.steps = state["colour_moments"].copy(), state["colour_steps"].copy()
     model.load_state({k[6:]: state[k] for k in state.files if k.startswith("model_")})
     exposure_adam.moments, exposure_adam.steps = state["exposure_moments"].copy(), state["exposure_steps"].copy()
     rng.bit_generator.state = json.loads(str(state["rng"]))
@@ -374,14 +501,20 @@ def _load_checkpoint(path: Path, config: DeblurConfig, model: BlurScene, exposur
 
 
 def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   result: DeblurResult, config: DeblurConfig) -> None:
+                   result: DeblurResult, config: DeblurConfig, sharpness: list[float],
+                   colours: np.ndarray | None) -> None:
     write_splats(stage_dir / "splats.ply", splats)
     write_tum(stage_dir / "trajectory.txt", sequence.timestamps, result.mid_poses,
               header="taichi-gs stage 3 (deblur), mid-exposure camera-to-world")
     write_text(stage_dir / "exposure.txt", _format_exposure(sequence.timestamps, result.exposure))
     write_text(stage_dir / "split.json", jsonout.dumps({"train": result.train, "test": result.test,
-                                                     "holdout_every": config.holdout_every}, indent=2) + "\n")
-    _write_renders(stage_dir, sequence, splats, poses, offsets, config)
+                                                     "holdout_every": config.holdout_every, "holdout": config.holdout,
+                                                     "laplacian_variance": sharpness}, indent=2) + "\n")
+    if colours is not None:
+        write_text(stage_dir / "colour_affine.json", jsonout.dumps(
+            {"rows": "out = M[:, :3] @ rgb + M[:, 3]", "frames": {n: colours[i].round(6).tolist()
+                                                                  for i, n in enumerate(sequence.names)}}) + "\n")
+    _write_renders(stage_dir, sequence, splats, poses, offsets, config, result.test, colours)
     history = result.loss_history
     if history:
         it = np.array([h["iteration"] for h in history], dtype=float)
@@ -400,17 +533,20 @@ def _format_exposure(timestamps: np.ndarray, exposure: np.ndarray) -> str:
 
 
 def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   config: DeblurConfig) -> None:
-    """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame, and a grid."""
+                   config: DeblurConfig, test: list[int], colours: np.ndarray | None) -> None:
+    """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame, and a grid;
+    with per-frame ``colours`` the colour renders are in each frame's own colour (its transform applied)."""
     first = sequence.color(0)
     full = BlurScene(splats, sequence.K(), first.shape[1], first.shape[0])
     scale = sequence.intrinsics.depth_scale
     rows, names = [], []
     has_truth = sequence.sharp_paths is not None
-    grid_frames = set(_grid_frames(len(sequence), config))
+    grid_frames = set(_grid_frames(len(sequence), test, config.grid_frames))
     for i, name in enumerate(sequence.names):
         sharp, depth = full.render(virtual_pose(poses[i], *offsets[i], 0.5))
         reblurred = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], config.k)
+        if colours is not None:
+            sharp, reblurred = apply_affine(sharp, colours[i]), apply_affine(reblurred, colours[i])
         write_png(stage_dir / "renders" / "sharp" / f"{name}.png", to_uint8(sharp))
         write_png(stage_dir / "renders" / "reblurred" / f"{name}.png", to_uint8(reblurred))
         write_png(stage_dir / "renders" / "depth" / f"{name}.png", encode_depth(depth, scale))
@@ -421,9 +557,8 @@ def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     image_grid(stage_dir / "grid.png", rows, titles, names, min_width=0)
 
 
-def _grid_frames(n_frames: int, config: DeblurConfig) -> list[int]:
+def _grid_frames(n_frames: int, test: list[int], count: int) -> list[int]:
     """A few frames spread over the sequence, test views first when there are any."""
-    test = split_frames(n_frames, config.holdout_every)[1]
     pool = test or list(range(n_frames))
-    picks = np.linspace(0, len(pool) - 1, min(config.grid_frames, len(pool))).round().astype(int)
+    picks = np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)
     return [pool[p] for p in sorted(set(picks))]

@@ -1,0 +1,114 @@
+"""The real-data image protocol of ``taichi-gs eval``: scores of stage 3's renders that need no
+sharp ground truth (see :mod:`noreference` for the measures).
+
+Per split (``test`` = held-out views, ``train``), means over views of:
+- ``reblur_psnr_db`` / ``reblur_ssim``: the re-blurred render (k-view average over the frame's
+  exposure; a held-out frame's exposure is fitted at test time against its own input, scene frozen)
+  against the blurred input. High values say the model explains the capture.
+- ``gradient_energy_ratio``: gradient energy of the sharp mid-exposure render over the input's
+  (above 1: sharper than the capture); ``ground_truth_gradient_energy_ratio`` when sharp images exist.
+- ``dark_hole_fraction``: share of pixels dark in the render (below half the input's grey level,
+  where the input is at least 0.1).
+And for held-out views only:
+- ``held_out_psnr_db`` / ``held_out_ssim``: sharp render against the held-out frame's own image.
+  With ``holdout = "sharpest"`` those frames are the least blurred of their windows: the closest
+  thing to sharp ground truth a real capture has (it still holds some blur, noise and exposure
+  change, so this is a lower bound on quality).
+- ``warped_neighbour_psnr_db`` / ``..._ssim``: the floor. The two nearest training frames (before
+  and after) are warped into the held-out view through its sensor depth and the stage-3 poses, the
+  better one (PSNR) scored against the held-out frame over the pixels the warp reaches;
+  ``render_on_warp_mask_psnr_db`` / ``..._ssim`` score the render over the same pixels.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .evaluate import psnr, ssim
+from .io.sequence import Sequence, read_color
+from .io.trajectory import read_tum
+from .noreference import dark_hole_fraction, gradient_energy, masked_psnr, masked_ssim, warp_to_view
+from .plots import image_grid
+
+GRID_VIEWS = 4
+
+
+def protocol_text(split: dict[str, Any]) -> str:
+    """One line naming how the held-out views were chosen and what they are scored against."""
+    every = split.get("holdout_every", 0)
+    if split.get("holdout") == "sharpest":
+        chosen = (f"held-out views: the sharpest frame (variance of the Laplacian) of each "
+                  f"window of {every} frames")
+    elif every:
+        chosen = f"held-out views: frames 1, 1 + {every}, 1 + 2 x {every}, ... (not chosen by sharpness)"
+    else:
+        chosen = "no held-out views"
+    return (chosen + "; renders scored against the held-out frames' own images, re-blurred renders against "
+            "each frame's blurred input; floor: the nearer training frames warped into the view by depth")
+
+
+def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
+    """The protocol's figures for a run with stage-3 output (None before stage 3); writes
+    RUN_DIR/report/no_reference_views.png (held-out frame | sharp render | re-blurred | warped neighbour)."""
+    deblur = Path(run_dir) / "deblur"
+    split_path, trajectory = deblur / "split.json", deblur / "trajectory.txt"
+    if not split_path.is_file() or not trajectory.is_file():
+        return None
+    split = json.loads(split_path.read_text())
+    _, poses = read_tum(trajectory)
+    train, test = split.get("train", []), split.get("test", [])
+    result: dict[str, Any] = {"protocol": protocol_text(split), "holdout": split.get("holdout", "every"),
+                              "holdout_every": split.get("holdout_every")}
+    grid_rows, grid_titles = [], []
+    for group, frames in (("test", test), ("train", train)):
+        scores: dict[str, list[float]] = {}
+        for i in frames:
+            name = sequence.names[i]
+            frame = sequence.color(i)
+            sharp = read_color(deblur / "renders" / "sharp" / f"{name}.png")
+            reblurred = read_color(deblur / "renders" / "reblurred" / f"{name}.png")
+            values = {"reblur_psnr_db": psnr(reblurred, frame), "reblur_ssim": ssim(reblurred, frame),
+                      "gradient_energy_ratio": gradient_energy(sharp) / max(gradient_energy(frame), 1e-12),
+                      "dark_hole_fraction": dark_hole_fraction(sharp, frame)}
+            if sequence.sharp_paths is not None:
+                values["ground_truth_gradient_energy_ratio"] = (gradient_energy(sequence.sharp(i))
+                                                                / max(gradient_energy(frame), 1e-12))
+            if group == "test":
+                warped, mask = _best_neighbour_warp(sequence, poses, train, i, frame)
+                values.update({"held_out_psnr_db": psnr(sharp, frame), "held_out_ssim": ssim(sharp, frame),
+                               "warped_neighbour_psnr_db": masked_psnr(warped, frame, mask),
+                               "warped_neighbour_ssim": masked_ssim(warped, frame, mask),
+                               "render_on_warp_mask_psnr_db": masked_psnr(sharp, frame, mask),
+                               "render_on_warp_mask_ssim": masked_ssim(sharp, frame, mask),
+                               "warp_coverage": float(mask.mean())})
+                if len(grid_rows) < GRID_VIEWS:
+                    grid_rows.append([frame, sharp, reblurred, np.where(mask[..., None], warped, 0.0)])
+                    grid_titles.append(name)
+            for key, value in values.items():
+                scores.setdefault(key, []).append(value)
+        if scores:
+            result[group] = {"views": len(frames), **{k: float(np.nanmean(v)) for k, v in scores.items()}}
+    if grid_rows:
+        image_grid(Path(run_dir) / "report" / "no_reference_views.png", grid_rows,
+                   ["held-out frame", "sharp render", "re-blurred render", "warped neighbour"], grid_titles)
+    return result
+
+
+def _best_neighbour_warp(sequence: Sequence, poses: np.ndarray, train: list[int], i: int,
+                         frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest training frame before or after ``i`` warped into view i, whichever scores the
+    higher PSNR against ``frame``; (image, mask). An empty mask if there is none."""
+    depth, K = sequence.depth(i), sequence.K()
+    before = [j for j in train if j < i]
+    after = [j for j in train if j > i]
+    best = (np.zeros_like(frame), np.zeros(frame.shape[:2], bool), -np.inf)
+    for j in ([before[-1]] if before else []) + ([after[0]] if after else []):
+        warped, mask = warp_to_view(sequence.color(j), poses[j], depth, poses[i], K)
+        score = masked_psnr(warped, frame, mask)
+        if np.isfinite(score) and score > best[2]:
+            best = (warped, mask, score)
+    return best[0], best[1]

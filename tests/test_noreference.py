@@ -1,0 +1,132 @@
+"""No-reference measures of the real-data protocol: known answers on synthetic images, the sharpest
+hold-out split, and the protocol's figures on a run folder whose renders are the ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from taichi_gs.errors import InputError
+from taichi_gs.evaluate import psnr
+from taichi_gs.io.images import to_uint8, write_png
+from taichi_gs.io.trajectory import write_tum
+from taichi_gs.noreference import (
+    dark_hole_fraction, gradient_energy, laplacian_variance, masked_psnr, masked_ssim, sharpest_holdout, warp_to_view,
+)
+from taichi_gs.stages.deblur import choose_split
+
+
+def texture(h=64, w=80, seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return cv2.GaussianBlur(rng.uniform(0, 1, (h, w, 3)), (0, 0), 1.5).clip(0, 1)
+
+
+def test_gradient_energy_of_a_ramp_is_its_slope_squared():
+    slope = 0.004
+    ramp = np.repeat((slope * np.arange(100.0))[None, :, None], 3, axis=2).repeat(60, axis=0)
+    assert gradient_energy(ramp) == pytest.approx(slope**2, rel=1e-9)
+    diagonal = np.repeat((slope * (np.arange(60.0)[:, None] + np.arange(100.0)[None, :]))[..., None], 3, axis=2)
+    assert gradient_energy(diagonal) == pytest.approx(2 * slope**2, rel=1e-9)
+    assert gradient_energy(np.full((40, 40, 3), 0.3)) == pytest.approx(0.0, abs=1e-20)
+
+
+def test_gradient_energy_scales_with_contrast_and_falls_with_blur():
+    image = texture()
+    assert gradient_energy(0.5 * image) == pytest.approx(0.25 * gradient_energy(image), rel=1e-9)
+    assert laplacian_variance(0.5 * image) == pytest.approx(0.25 * laplacian_variance(image), rel=1e-9)
+    assert laplacian_variance(np.full((10, 10, 3), 0.7)) == pytest.approx(0.0, abs=1e-20)
+    blurred = [cv2.GaussianBlur(image, (0, 0), s) for s in (1.0, 2.0, 3.0)]
+    energies = [gradient_energy(image)] + [gradient_energy(b) for b in blurred]
+    assert all(a > b for a, b in zip(energies, energies[1:]))
+    # the sigma-1 pre-filter damps pixel noise far more than structure at the scale of the texture
+    noise = np.random.default_rng(1).normal(0, 0.05, image.shape)
+    noise_kept = gradient_energy(noise) / gradient_energy(noise, sigma=0)
+    structure_kept = gradient_energy(image) / gradient_energy(image, sigma=0)
+    assert noise_kept < 0.15 and structure_kept > 3 * noise_kept
+
+
+def test_sharpest_holdout_takes_the_sharpest_of_each_window():
+    train, test = sharpest_holdout([1, 5, 2, 3, 3, 1, 4], every=3)
+    assert test == [1, 3, 6]  # windows [0, 3), [3, 6) (tie: earlier frame), [6, 7)
+    assert train == [0, 2, 4, 5]
+    assert sharpest_holdout([1, 2, 3], every=0) == ([0, 1, 2], [])
+    with pytest.raises(ValueError):
+        sharpest_holdout([1.0], every=2)
+
+
+def test_choose_split_holds_out_the_least_blurred_frames():
+    base = texture(seed=3)
+    sigmas = [2.0, 0.5, 3.0, 2.5, 1.5, 0.3, 1.0, 2.0, 4.0]
+    colors = [cv2.GaussianBlur(base, (0, 0), s) for s in sigmas]
+    train, test, sharpness = choose_split(colors, "sharpest", 3)
+    assert test == [1, 5, 6] and train == [0, 2, 3, 4, 7, 8]
+    assert np.argsort(sharpness).tolist() == np.argsort(-np.array(sigmas), kind="stable").tolist()
+    assert choose_split(colors, "every", 3)[1] == [1, 4, 7]
+    with pytest.raises(InputError):
+        choose_split(colors, "blurriest", 3)
+
+
+def test_warp_through_a_plane_is_a_known_shift():
+    h, w, focal, z, shift = 40, 60, 50.0, 2.0, 3
+    K = np.array([[focal, 0, 30.0], [0, focal, 20.0], [0, 0, 1]])
+    source = texture(h, w, seed=4)
+    source_pose = np.eye(4)
+    source_pose[:3, 3] = [0.1, -0.2, 0.3]
+    pose = source_pose.copy()
+    pose[0, 3] += shift * z / focal  # camera moved along its x axis by 3 px at depth z
+    warped, valid = warp_to_view(source, source_pose, np.full((h, w), z), pose, K)
+    assert valid[:, : w - shift].all() and not valid[:, w - shift + 1:].any()
+    assert np.allclose(warped[:, : w - shift], source[:, shift:], atol=1e-5)
+    same, valid_same = warp_to_view(source, source_pose, np.full((h, w), z), source_pose, K)
+    assert valid_same.all() and np.allclose(same, source, atol=1e-6)
+    holes = np.full((h, w), z)
+    holes[:10] = 0.0
+    assert not warp_to_view(source, source_pose, holes, source_pose, K)[1][:10].any()
+
+
+def test_masked_scores_and_dark_holes():
+    image = np.full((50, 50, 3), 0.5)
+    mask = np.zeros((50, 50), bool)
+    mask[10:30, 10:30] = True
+    shifted = image + 0.1 * mask[..., None]
+    assert masked_psnr(shifted, image, mask) == pytest.approx(20.0)
+    assert masked_psnr(shifted, image, ~mask) == np.inf
+    assert masked_ssim(image, image, mask) == pytest.approx(1.0)
+    render = np.full((100, 100, 3), 0.6)
+    render[30:70, 30:70] = 0.0
+    assert dark_hole_fraction(render, np.full((100, 100, 3), 0.6)) == pytest.approx(0.16, abs=0.01)
+    assert dark_hole_fraction(np.zeros((20, 20, 3)), np.full((20, 20, 3), 0.05)) == 0.0  # input itself dark
+
+
+def test_protocol_on_a_run_whose_renders_are_the_truth(tmp_path):
+    """Sharp renders = sharp ground truth and re-blurred renders = the input: re-blur PSNR is that
+    of 8-bit rounding, the gradient-energy ratio equals ground truth's, and the held-out score is
+    the ground truth's against the blurred frame."""
+    synth = pytest.importorskip("taichi_gs.synth")
+    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.noreference_report import no_reference_metrics
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    stage = tmp_path / "run" / "deblur"
+    for i, name in enumerate(sequence.names):
+        write_png(stage / "renders" / "sharp" / f"{name}.png", to_uint8(sequence.sharp(i)))
+        write_png(stage / "renders" / "reblurred" / f"{name}.png", to_uint8(sequence.color(i)))
+    write_tum(stage / "trajectory.txt", sequence.timestamps, sequence.gt_poses)
+    train, test, sharpness = choose_split([sequence.color(i) for i in range(6)], "sharpest", 3)
+    (stage / "split.json").write_text(json.dumps({"train": train, "test": test, "holdout": "sharpest",
+                                                  "holdout_every": 3, "laplacian_variance": sharpness}))
+    metrics = no_reference_metrics(tmp_path / "run", sequence)
+    assert "sharpest frame" in metrics["protocol"]
+    held = metrics["test"]
+    assert held["views"] == 2 and held["reblur_psnr_db"] > 45
+    assert held["gradient_energy_ratio"] == pytest.approx(held["ground_truth_gradient_energy_ratio"], rel=0.02)
+    expected = np.mean([psnr(sequence.sharp(i), sequence.color(i)) for i in test])
+    assert held["held_out_psnr_db"] == pytest.approx(expected, abs=0.05)
+    assert 0.3 < held["warp_coverage"] <= 1.0 and np.isfinite(held["warped_neighbour_psnr_db"])
+    assert metrics["train"]["views"] == 4
+    assert cv2.imread(str(tmp_path / "run" / "report" / "no_reference_views.png")) is not None

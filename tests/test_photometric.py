@@ -1,0 +1,108 @@
+"""Per-frame affine colour compensation: gradients against central finite differences in float64,
+and stage 3's schedule helpers."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from taichi_gs.photometric import IDENTITY, affine_backward, apply_affine, identity_penalty
+from taichi_gs.stages.deblur import PRESETS, scaled_schedule, training_frame
+
+
+def _loss(image, M, weights):
+    return float(np.sum(weights * apply_affine(image, M) ** 2))
+
+
+def test_affine_gradients_match_finite_differences():
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0, 1, (7, 5, 3))
+    M = IDENTITY + 0.1 * rng.normal(size=(3, 4))
+    weights = rng.normal(size=(7, 5, 3))
+    grad_out = 2 * weights * apply_affine(image, M)
+    grad_image, grad_M = affine_backward(image, M, grad_out)
+    h = 1e-6
+    fd_M = np.zeros_like(M)
+    for idx in np.ndindex(M.shape):
+        step = np.zeros_like(M)
+        step[idx] = h
+        fd_M[idx] = (_loss(image, M + step, weights) - _loss(image, M - step, weights)) / (2 * h)
+    fd_image = np.zeros_like(image)
+    for idx in [(0, 0, 0), (3, 2, 1), (6, 4, 2), (2, 3, 0)]:
+        step = np.zeros_like(image)
+        step[idx] = h
+        fd_image[idx] = (_loss(image + step, M, weights) - _loss(image - step, M, weights)) / (2 * h)
+        assert grad_image[idx] == pytest.approx(fd_image[idx], rel=1e-6, abs=1e-8)
+    assert np.allclose(grad_M, fd_M, rtol=1e-6, atol=1e-8)
+
+
+def test_identity_is_a_no_op_and_the_pull_gradient_is_exact():
+    image = np.random.default_rng(1).uniform(0, 1, (4, 4, 3))
+    assert np.array_equal(apply_affine(image, IDENTITY), image)
+    M = IDENTITY + 0.05
+    value, grad = identity_penalty(M, 0.3)
+    assert value == pytest.approx(0.3 * 12 * 0.05**2)
+    h = 1e-6
+    step = np.zeros_like(M)
+    step[1, 3] = h
+    fd = (identity_penalty(M + step, 0.3)[0] - identity_penalty(M - step, 0.3)[0]) / (2 * h)
+    assert grad[1, 3] == pytest.approx(fd, rel=1e-6)
+
+
+def test_schedule_scales_with_training_views():
+    fast = dataclasses.replace(PRESETS["fast"], iterations_per_view=40)
+    assert scaled_schedule(fast, 10) is fast  # 400 < 600: unchanged
+    long = scaled_schedule(fast, 30)
+    assert long.iterations == 1200 and long.densify_from == 2 * fast.densify_from
+    assert long.densify_until == 2 * fast.densify_until and long.exposure_from == 2 * fast.exposure_from
+    assert long.densify_every == 2 * fast.densify_every
+
+
+def test_epoch_sampling_visits_every_view_once_per_epoch():
+    train = [0, 2, 3, 5, 7]
+    rng = np.random.default_rng(0)
+    for epoch in range(3):
+        seen = [training_frame(train, epoch * 5 + i, rng, seed=4, epochs=True) for i in range(5)]
+        assert sorted(seen) == train
+    assert training_frame(train, 7, rng, 4, True) == training_frame(train, 7, np.random.default_rng(9), 4, True)
+
+
+def test_nearest_filled_takes_the_closest_valid_depth():
+    from taichi_gs.stages.deblur import nearest_filled
+
+    depth = np.zeros((5, 7))
+    depth[:, 0], depth[:, 6] = 1.0, 3.0
+    filled = nearest_filled(depth)
+    assert np.all(filled[:, :3] == 1.0) and np.all(filled[:, 4:] == 3.0)
+    assert np.all(nearest_filled(np.zeros((3, 3))) == 0.0)
+
+
+def test_uncovered_pixels_get_gaussians_at_the_nearest_depth():
+    from taichi_gs.deblur_model import BlurScene
+    from taichi_gs.kernels import runtime
+    from taichi_gs.splats import Splats, logit, rgb_to_sh_dc
+    from taichi_gs.stages.deblur import fill_uncovered
+
+    runtime.init()
+    w, h, f = 40, 30, 40.0
+    K = np.array([[f, 0, 19.5], [0, f, 14.5], [0, 0, 1]])
+    ys, xs = np.mgrid[-0.75:0.76:0.05, -1.0:0.01:0.05]  # a wall at z = 2 covering the left half
+    n = xs.size
+    means = np.stack([xs.ravel(), ys.ravel(), np.full(n, 2.0)], axis=1)
+    splats = Splats(means.astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                    np.full((n, 3), np.log(0.04), np.float32), np.full(n, logit(0.9), np.float32),
+                    np.tile(rgb_to_sh_dc([0.5, 0.5, 0.5])[None, None], (n, 1, 1)))
+    model = BlurScene(splats, K, w, h)
+    _, alpha = model.coverage(np.eye(4))
+    assert alpha[:, :15].mean() > 0.9 and alpha[:, 25:].mean() < 0.05
+    color = np.full((h, w, 3), 0.8, np.float32)
+    sensor = np.zeros((h, w), np.float32)  # no sensor depth at all: the wall's rendered depth is used
+    added = fill_uncovered(model, color, sensor, np.eye(4), K, 2, 10_000, np.random.default_rng(0))
+    assert added == model.count - n and added >= 0.4 * (w * h / 4)
+    new = model.arrays()["means"][n:]
+    assert np.allclose(new[:, 2], 2.0, atol=0.02) and new[:, 0].max() > 0.5
+    rgb, _ = model.render(np.eye(4))
+    _, alpha = model.coverage(np.eye(4))
+    assert alpha[:, 25:].mean() > 0.9 and np.allclose(rgb[:, 30:].mean(), 0.8 * alpha[:, 30:].mean(), atol=0.05)
