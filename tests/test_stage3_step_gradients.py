@@ -1,0 +1,199 @@
+"""Stage 3's composed step (BlurScene.step): (1 - l_B) L1 + l_B D-SSIM of the k-view average against
+a blurred frame, plus l_D times the masked depth L1 of the mid-exposure view, back-propagated to
+the Gaussians and to both exposure offsets. Checked against central finite differences in float64
+of a loss written independently here in NumPy (L1, D-SSIM with the 3DGS window and zero padding,
+masked depth L1, the k-view mean), and BlurScene's own float32 gradients against the float64 ones."""
+
+from __future__ import annotations
+
+import functools
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from taichi_gs import deblur_model
+from taichi_gs.deblur_model import BlurScene, exposure_taus
+from taichi_gs.geometry import raster_intrinsics, se3_exp
+from taichi_gs.kernels import runtime
+from taichi_gs.render import Camera, DeviceGaussians, Rasterizer, virtual_pose
+from taichi_gs.splats import Splats
+
+WIDTH, HEIGHT = 40, 32
+K = np.array([[38.0, 0.0, 19.3], [0.0, 37.0, 15.6], [0.0, 0.0, 1.0]])  # OpenCV convention
+BASE = se3_exp(np.array([0.05, -0.08, 0.03, 0.04, -0.03, 0.02]))
+D_START = np.array([-0.03, 0.012, -0.008, 0.01, -0.015, 0.006])
+D_END = np.array([0.025, -0.01, 0.012, -0.012, 0.018, -0.004])
+K_VIEWS, LAMBDA_DSSIM, LAMBDA_DEPTH = 3, 0.2, 0.3
+STEPS = (1e-6, 2.5e-7)  # second step for entries whose first straddles a cut-off jump (see test_render)
+
+
+def _scene(seed: int, n: int = 30) -> Splats:
+    rng = np.random.default_rng(seed)
+    cam = np.stack([rng.uniform(-1.1, 1.1, n), rng.uniform(-0.9, 0.9, n), rng.uniform(2.5, 4.0, n)], axis=1)
+    means = cam @ BASE[:3, :3].T + BASE[:3, 3]
+    return Splats(means, rng.normal(size=(n, 4)), np.log(rng.uniform(0.08, 0.3, (n, 3))), rng.normal(0.5, 1.0, n),
+                  rng.normal(size=(n, 4, 3)) * 0.5)
+
+
+def _window() -> np.ndarray:
+    x = np.arange(11) - 5.0
+    w = np.exp(-x**2 / (2 * 1.5**2))
+    return w / w.sum()
+
+
+def _gaussian_blur(img: np.ndarray) -> np.ndarray:
+    """Separable 11-tap Gaussian (sigma 1.5) over the first two axes, zero padding."""
+    w = _window()
+    h, wd = img.shape[:2]
+    padded = np.pad(img, ((5, 5), (5, 5), (0, 0)))
+    rows = sum(w[i] * padded[:, i:i + wd] for i in range(11))
+    return sum(w[i] * rows[i:i + h] for i in range(11))
+
+
+def _dssim(x: np.ndarray, y: np.ndarray) -> float:
+    c1, c2 = 0.01**2, 0.03**2
+    mu1, mu2 = _gaussian_blur(x), _gaussian_blur(y)
+    s11 = _gaussian_blur(x * x) - mu1**2
+    s22 = _gaussian_blur(y * y) - mu2**2
+    s12 = _gaussian_blur(x * y) - mu1 * mu2
+    ssim = (2 * mu1 * mu2 + c1) * (2 * s12 + c2) / ((mu1**2 + mu2**2 + c1) * (s11 + s22 + c2))
+    return float(1.0 - ssim.mean())
+
+
+def _loss_f64(gaussians, rasterizer: Rasterizer, frame, depth, d_start, d_end) -> float:
+    """The stage-3 loss of one frame, from float64 renders, in NumPy."""
+    taus = exposure_taus(K_VIEWS)
+    mid = int(np.argmin(np.abs(taus - 0.5)))
+    rgbs, depths = [], []
+    for tau in taus:
+        camera = Camera(raster_intrinsics(K), virtual_pose(BASE, d_start, d_end, tau), WIDTH, HEIGHT)
+        view = rasterizer.forward(gaussians, camera)
+        rgbs.append(view.rgb.to_numpy())
+        depths.append(view.depth.to_numpy())
+    blurred = np.mean(rgbs, axis=0)
+    l1 = np.abs(blurred - frame).mean()
+    valid = depth > 0
+    depth_l1 = np.abs(depths[mid] - depth)[valid].sum() / max(valid.sum(), 1)
+    return (1 - LAMBDA_DSSIM) * l1 + LAMBDA_DSSIM * _dssim(blurred, frame) + LAMBDA_DEPTH * depth_l1
+
+
+def _targets(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A blurred frame (another scene seen over another exposure, plus noise) and a depth map with holes."""
+    rng = np.random.default_rng(seed)
+    other = BlurScene(_scene(seed + 100), K, WIDTH, HEIGHT)
+    frame = other.render_blurred(BASE, 0.7 * D_START, 1.3 * D_END, 5) + rng.normal(0, 0.05, (HEIGHT, WIDTH, 3))
+    _, depth = other.render(virtual_pose(BASE, D_START, D_END, 0.5))
+    depth = np.where(rng.uniform(size=depth.shape) < 0.3, 0.0, depth + rng.normal(0, 0.1, depth.shape))
+    return frame.astype(np.float32), np.maximum(depth, 0.0).astype(np.float32)
+
+
+def _f64_blur_scene(monkeypatch, splats: Splats) -> BlurScene:
+    """BlurScene itself, with its Gaussians and rasterizer in float64 (its code path unchanged)."""
+    monkeypatch.setattr(deblur_model, "DeviceGaussians",
+                        SimpleNamespace(from_numpy=functools.partial(DeviceGaussians.from_numpy, dtype=ti.f64)))
+    monkeypatch.setattr(deblur_model, "Rasterizer", lambda: Rasterizer(ti.f64))
+    model = BlurScene(splats, K, WIDTH, HEIGHT)
+    assert model.gaussians.dtype == ti.f64
+    return model
+
+
+def _relative_error(analytic: float, numeric: float, scale: float) -> float:
+    return abs(analytic - numeric) / max(abs(numeric), 1e-3 * scale)
+
+
+def _fd_error(analytic: float, f, scale: float) -> float:
+    """Relative error of a central difference; the second step is tried when the first disagrees."""
+    errors = []
+    for h in STEPS:
+        errors.append(_relative_error(analytic, (f(h) - f(-h)) / (2 * h), scale))
+        if errors[-1] <= 1e-5:
+            break
+    return min(errors)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    runtime.init()
+    frame, depth = _targets(5)
+    return _scene(4), frame, depth
+
+
+def _f64_step(monkeypatch, splats, frame, depth):
+    model = _f64_blur_scene(monkeypatch, splats)
+    step = model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, LAMBDA_DSSIM, LAMBDA_DEPTH, rates=None)
+    return model, step, model.gaussians.download(grads=True)
+
+
+def test_stage3_step_gradients_match_finite_differences(monkeypatch, problem):
+    splats, frame, depth = problem
+    model, step, grads = _f64_step(monkeypatch, splats, frame, depth)
+    params = model.arrays()
+    frame64, depth64 = frame.astype(np.float64), depth.astype(np.float64)
+
+    def loss(arrays=None, d_start=D_START, d_end=D_END) -> float:
+        model.gaussians.upload(**(arrays or params))
+        return _loss_f64(model.gaussians, model.rasterizer, frame64, depth64, d_start, d_end)
+
+    # the loss value BlurScene reports is the same function
+    reported = (1 - LAMBDA_DSSIM) * step.losses["l1"] + LAMBDA_DSSIM * step.losses["dssim"] \
+        + LAMBDA_DEPTH * step.losses["depth"]
+    assert reported == pytest.approx(loss(), rel=1e-9)
+    assert step.losses["dssim"] > 0.05 and step.losses["depth"] > 0.05, "every term should contribute"
+
+    # Gaussians seen by the mid view with a non-trivial gradient; every parameter of each
+    rng = np.random.default_rng(1)
+    seen = np.flatnonzero(np.abs(grads["means"]).sum(axis=1) > 1e-6 * np.abs(grads["means"]).max())
+    assert len(seen) >= 10
+    sample = rng.choice(seen, 6, replace=False)
+    errors: dict[str, float] = {}
+    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        scale = float(np.abs(grads[name][sample]).max())
+        assert scale > 0, name
+        worst = 0.0
+        for i in sample:
+            for idx in np.ndindex(params[name].shape[1:]):
+                entry = (i, *idx)
+
+                def f(h, name=name, entry=entry):
+                    moved = dict(params)
+                    moved[name] = params[name].copy()
+                    moved[name][entry] += h
+                    return loss(moved)
+
+                worst = max(worst, _fd_error(float(grads[name][entry]), f, scale))
+        errors[name] = worst
+    loss()  # restore
+
+    for which, analytic in (("d_start", step.grad_start), ("d_end", step.grad_end)):
+        assert np.abs(analytic).max() > 0
+        scale = float(np.abs(analytic).max())
+        worst = 0.0
+        for c in range(6):
+            e = np.eye(6)[c]
+
+            def g(h, e=e, which=which):
+                return loss(d_start=D_START + h * e, d_end=D_END) if which == "d_start" \
+                    else loss(d_start=D_START, d_end=D_END + h * e)
+
+            worst = max(worst, _fd_error(float(analytic[c]), g, scale))
+        errors[which] = worst
+    assert max(errors.values()) < 1e-4, errors
+
+
+def test_float32_step_agrees_with_float64(monkeypatch, problem):
+    """The production (float32) BlurScene.step gives the float64 gradients to float32 accuracy."""
+    splats, frame, depth = problem
+    model32 = BlurScene(splats, K, WIDTH, HEIGHT)
+    assert model32.gaussians.dtype == ti.f32
+    step32 = model32.step(frame, depth, BASE, D_START, D_END, K_VIEWS, LAMBDA_DSSIM, LAMBDA_DEPTH, rates=None)
+    grads32 = model32.gaussians.download(grads=True)
+    _, step64, grads64 = _f64_step(monkeypatch, splats, frame, depth)
+    for name in ("l1", "dssim", "depth"):
+        assert step32.losses[name] == pytest.approx(step64.losses[name], rel=1e-4, abs=1e-6), name
+    pairs = {name: (grads32[name], grads64[name]) for name in grads64}
+    pairs.update(d_start=(step32.grad_start, step64.grad_start), d_end=(step32.grad_end, step64.grad_end))
+    for name, (g32, g64) in pairs.items():
+        assert np.linalg.norm(g64) > 0, name
+        assert np.linalg.norm(g32 - g64) <= 2e-3 * np.linalg.norm(g64), name
