@@ -1,0 +1,142 @@
+"""Stage 3's adaptive density control on hand-made scenes: which Gaussians are cloned, split or
+pruned given their positional-gradient statistics and scales, that Adam moments follow their
+Gaussians through the surgery, and the opacity reset."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from taichi_gs.deblur_model import TRAINED, BlurScene
+from taichi_gs.geometry import quat_to_rotmat
+from taichi_gs.splats import Splats, logit
+
+K = np.array([[30.0, 0.0, 16.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
+SPLIT_SCALE, MIN_OPACITY, MAX_SCALE, THRESHOLD = 0.01, 0.005, 0.2, 1.0
+
+
+def _scene() -> Splats:
+    """Six Gaussians, each with its own fate under the thresholds above (see ``GRAD``):
+    0 small + large gradient: cloned; 1 large + large gradient: split; 2 small, small gradient: kept;
+    3 nearly transparent: pruned; 4 oversize: pruned; 5 large, gradient just below the threshold: kept."""
+    n = 6
+    means = np.stack([np.arange(n) * 0.3 - 0.75, np.linspace(-0.2, 0.2, n), np.full(n, 3.0)], axis=1)
+    scales = np.array([[0.005, 0.004, 0.006], [0.05, 0.02, 0.03], [0.004] * 3, [0.02] * 3, [0.5, 0.05, 0.05],
+                       [0.03, 0.05, 0.02]])
+    quats = np.array([[1, 0, 0, 0], [0.9, 0.3, -0.2, 0.1], [1, 0, 0, 0], [1, 0, 0, 0], [1, 0, 0, 0], [0.8, 0, 0.6, 0]])
+    quats = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+    opacity = np.array([0.6, 0.8, 0.5, 0.001, 0.7, 0.4])
+    colors = (np.arange(n * 3).reshape(n, 1, 3) * 0.1).astype(np.float32)
+    return Splats(means.astype(np.float32), quats.astype(np.float32), np.log(scales).astype(np.float32),
+                  logit(opacity).astype(np.float32), colors)
+
+
+GRAD = np.array([3.0, 2.0, 0.5, 0.2, 0.1, 0.99])  # mean image-plane gradient (px) of each Gaussian
+
+
+def _model(grad_mean: np.ndarray = GRAD) -> BlurScene:
+    model = BlurScene(_scene(), K, 32, 24)
+    model.grad_count = np.full(model.count, 4.0)
+    model.grad_sum = grad_mean * model.grad_count
+    # distinctive Adam moments: row i of every parameter holds i + 1 (first) and 10 (i + 1) (second)
+    for name, (m, v) in model.adam.moments.items():
+        shape = m.shape
+        rows = np.arange(1, shape[0] + 1, dtype=np.float32).reshape((-1,) + (1,) * (len(shape) - 1))
+        m.from_numpy(np.ascontiguousarray(np.broadcast_to(rows, shape), np.float32))
+        v.from_numpy(np.ascontiguousarray(np.broadcast_to(10 * rows, shape), np.float32))
+    model.adam.t = 7
+    return model
+
+
+def _densify(model: BlurScene, seed: int = 0, max_gaussians: int = 100) -> tuple[int, int]:
+    return model.densify_and_prune(THRESHOLD, SPLIT_SCALE, MIN_OPACITY, MAX_SCALE, max_gaussians,
+                                   np.random.default_rng(seed))
+
+
+def test_clone_split_prune_known_answer():
+    model = _model()
+    before = model.arrays()
+    added, removed = _densify(model, seed=3)
+    after = model.arrays()
+    assert (added, removed) == (2, 2)
+    assert model.count == 6  # 6 + clone of 0 + split of 1 - pruned 3 and 4
+    # order: survivors [0, 1, 2, 5], then the clone of 0, then the second half of 1's split
+    origin = [0, 1, 2, 5, 0, 1]
+    for name in TRAINED:
+        if name in ("means", "log_scales"):
+            continue
+        np.testing.assert_array_equal(after[name], before[name][origin], err_msg=name)
+    for row in (0, 2, 3, 4):  # untouched or cloned: identical position and size
+        np.testing.assert_array_equal(after["means"][row], before["means"][origin[row]])
+        np.testing.assert_array_equal(after["log_scales"][row], before["log_scales"][origin[row]])
+
+    # split: two samples of the old Gaussian, mirrored about its centre, each 1.6x smaller
+    offset = after["means"][5] - before["means"][1]
+    np.testing.assert_allclose(after["means"][1], before["means"][1] - offset, atol=1e-6)
+    scales = np.exp(before["log_scales"][1].astype(np.float64))
+    expected = quat_to_rotmat(before["quats"][1:2])[0] @ (np.random.default_rng(3).normal(size=(1, 3))[0] * scales)
+    np.testing.assert_allclose(offset, expected, rtol=1e-4, atol=1e-7)
+    for row in (1, 5):
+        np.testing.assert_allclose(after["log_scales"][row], before["log_scales"][1] - np.log(1.6), atol=1e-6)
+
+    # every kept Gaussian still has an opacity >= the floor and a scale <= the cap
+    assert np.all(after["opacity_logits"] >= logit(MIN_OPACITY))
+    assert np.all(after["log_scales"].max(axis=1) <= np.log(MAX_SCALE))
+    # statistics restart; the Adam step count survives
+    np.testing.assert_array_equal(model.grad_sum, np.zeros(6))
+    np.testing.assert_array_equal(model.grad_count, np.zeros(6))
+    assert model.adam.t == 7
+
+
+def test_adam_moments_follow_their_gaussians():
+    model = _model()
+    _densify(model)
+    for name, (m, v) in model.adam.moments.items():
+        first, second = m.to_numpy()[: model.count], v.to_numpy()[: model.count]
+        row_ids = first.reshape(model.count, -1)
+        # survivors keep their own moments (original rows 0, 1, 2, 5 held 1, 2, 3, 6); new rows start at 0
+        np.testing.assert_array_equal(row_ids[:, 0], [1, 2, 3, 6, 0, 0], err_msg=name)
+        assert np.all(row_ids == row_ids[:, :1]), name
+        np.testing.assert_array_equal(second, 10 * first, err_msg=name)
+
+
+def test_growth_respects_the_cap_largest_gradient_first():
+    model = _model()
+    added, removed = _densify(model, max_gaussians=7)  # room for one: Gaussian 0 (gradient 3.0) wins
+    assert (added, removed) == (1, 2)
+    after = model.arrays()
+    assert model.count == 5
+    np.testing.assert_array_equal(after["means"][4], after["means"][0])  # the clone of 0
+    assert model.arrays()["log_scales"][1] == pytest.approx(_scene().log_scales[1])  # 1 not split
+
+    full = _model()
+    assert _densify(full, max_gaussians=6) == (0, 2)  # no room: nothing grows, pruning still runs
+
+
+def test_nothing_above_threshold_only_prunes():
+    model = _model(np.zeros(6))
+    before = model.arrays()
+    assert _densify(model) == (0, 2)
+    np.testing.assert_array_equal(model.arrays()["means"], before["means"][[0, 1, 2, 5]])
+
+
+def test_reset_opacity_clamps_and_forgets_opacity_moments():
+    model = _model()
+    before = model.arrays()
+    moments_before = {name: (m.to_numpy(), v.to_numpy()) for name, (m, v) in model.adam.moments.items()}
+    model.reset_opacity(0.01)
+    after = model.arrays()
+    opacity = 1 / (1 + np.exp(-after["opacity_logits"].astype(np.float64)))
+    was = 1 / (1 + np.exp(-before["opacity_logits"].astype(np.float64)))
+    np.testing.assert_allclose(opacity[was > 0.01], 0.01, rtol=1e-5)
+    np.testing.assert_array_equal(after["opacity_logits"][was <= 0.01], before["opacity_logits"][was <= 0.01])
+    assert (was > 0.01).sum() == 5 and (was <= 0.01).sum() == 1
+    for name in TRAINED:
+        if name != "opacity_logits":
+            np.testing.assert_array_equal(after[name], before[name], err_msg=name)
+    for name, (m, v) in model.adam.moments.items():
+        if name == "opacity_logits":
+            assert not m.to_numpy().any() and not v.to_numpy().any()
+        else:
+            np.testing.assert_array_equal(m.to_numpy(), moments_before[name][0], err_msg=name)
+            np.testing.assert_array_equal(v.to_numpy(), moments_before[name][1], err_msg=name)
