@@ -32,7 +32,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from taichi_gs.evaluate import ate, rpe

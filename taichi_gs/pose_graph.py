@@ -8,7 +8,8 @@ The error of an edge is ``e = log(inv(X_t) X_s inv(Z))``, a left perturbation in
 Solved by Gauss-Newton on all poses at once (dense normal equations; the first pose is fixed to pin
 the gauge), first by plain least squares, then by iteratively reweighted least squares with the
 Cauchy loss on each edge's Mahalanobis length ``chi = sqrt(e^T Lambda e)``. The Cauchy scale is
-``robust_scale`` times the median chi of all edges (never below ``min_chi``), so the loss needs no
+``robust_scale`` times the median chi of the cycle-closing (non-odometry) edges (never below
+``min_chi``), so the loss needs no
 calibrated noise level: an edge that disagrees with the rest far more than the typical edge does
 is outvoted (its weight ends near 0) and reported as pruned.
 """
@@ -81,8 +82,12 @@ def optimise(poses: np.ndarray, edges: list[Edge], settings: GraphSettings = Gra
 
 
 def _cauchy_weights(edges: list[Edge], errors: list[np.ndarray], settings: GraphSettings) -> np.ndarray:
+    """Cauchy weights; the scale comes from the edges that close cycles (kind other than odometry): in a
+    chain with few extra edges most odometry edges sit on no cycle and have chi = 0 whatever their error."""
     chi = np.array([np.sqrt(max(float(e @ edge.information @ e), 0.0)) for edge, e in zip(edges, errors)])
-    scale = max(settings.robust_scale * float(np.median(chi)), settings.min_chi)
+    closing = np.array([edge.kind != "odometry" for edge in edges])
+    reference = chi[closing] if closing.any() else chi
+    scale = max(settings.robust_scale * float(np.median(reference)), settings.min_chi)
     return 1.0 / (1.0 + (chi / scale) ** 2)
 
 

@@ -22,6 +22,10 @@ from taichi_gs.synth import SynthConfig, generate
 
 # Small enough for a few seconds per stage on 2 cores, long enough to be caught mid-stage.
 TINY_CONFIG = """
+[pose]
+icp_from_prior = false
+pose_graph = false
+
 [refine]
 iterations_per_frame = 40
 prune_every_per_frame = 20

@@ -113,6 +113,7 @@ class PoseConfig:
     pose_graph: bool = True
     graph_skips: tuple = (2, 3)
     graph_icp: bool = False
+    graph_max_score_ratio: float = 1.5  # extra edges scoring above this x the median pair score are dropped
     graph_weak_weight: float = 0.01  # information scale of weak (i, i+1) pairs, kept to connect the graph
     graph_info_voxel_m: float = 0.02  # clouds of the information matrices (Open3D, point-to-point)
     graph_info_distance_m: float = 0.04
@@ -143,10 +144,15 @@ class PoseConfig:
         )
 
     def pair_key(self) -> str:
-        """Hash of the fields that change a pair's result (not the fused cloud's voxel size)."""
-        values = {k: v for k, v in dataclasses.asdict(self).items() if k != "voxel_size_m"}
+        """Hash of the fields that change a pair's result (not the fused cloud's voxel size nor the graph's)."""
+        values = {k: v for k, v in dataclasses.asdict(self).items() if k not in _NOT_PAIR_FIELDS}
         return hashlib.sha1(json.dumps(values, sort_keys=True, default=list).encode()).hexdigest()[:16]
 
+
+# Fields that do not change a pair's own result (excluded from the pair cache's key).
+_NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_max_score_ratio", "graph_weak_weight",
+                    "graph_info_voxel_m", "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every",
+                    "loop_max_distance_m", "loop_max_angle_deg"}
 
 # The method's path alone: flow solve, then point-to-plane ICP behind its guards, pairs chained
 # (as a --config file: [pose] verify = false, rgbd_refine = false, icp_from_prior = false, pose_graph = false,
@@ -547,6 +553,8 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
     """[ours] Poses from a robust pose graph over the pairs, skip edges and loop closures (see PoseConfig)."""
     K = sequence.intrinsics.K()
     n = len(sequence)
+    scores = [r.score for r in relatives if np.isfinite(r.score)]
+    max_score = config.graph_max_score_ratio * float(np.median(scores)) if scores else config.verify_max_score
     edges = []
     for k, r in enumerate(relatives):
         info = _information(sequence, k, k + 1, r.transform, K, config)
@@ -554,19 +562,21 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
                           r.estimate, r.score, r.weak))
     for k in config.graph_skips:
         for i in range(n - int(k)):
-            edge = _graph_edge(sequence, i, i + int(k), chained, K, config, "skip")
+            edge = _graph_edge(sequence, i, i + int(k), chained, K, config, "skip", max_score)
             if edge is not None:
                 edges.append(edge)
     if config.loop_closures:
         for i, j in _loop_candidates(chained, config):
-            edge = _graph_edge(sequence, i, j, chained, K, config, "loop")
+            edge = _graph_edge(sequence, i, j, chained, K, config, "loop", max_score)
             if edge is not None:
                 edges.append(edge)
     return optimise(chained, edges), edges
 
 
-def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig, kind: str) -> Edge | None:
-    """A verified edge camera i -> camera j started from the current poses, or None when it is weak."""
+def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig, kind: str,
+                max_score: float) -> Edge | None:
+    """A verified edge camera i -> camera j started from the current poses, or None when it is weak, scores
+    above ``max_score`` or is no better than the poses it started from."""
     init = invert(poses[j]) @ poses[i]
     color_i, depth_i, color_j, depth_j = sequence.color(i), sequence.depth(i), sequence.color(j), sequence.depth(j)
     candidates = {"chain": Candidate(init)}
@@ -585,7 +595,7 @@ def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, conf
     settings = config.verify_settings()
     views = (frame_view(color_i, depth_i, K, settings), frame_view(color_j, depth_j, K, settings))
     chosen = _choose(candidates, views, K, config, ("rgbd-icp-chain", "rgbd-chain", "icp-chain", "chain"))
-    if chosen.weak or chosen.estimate == "chain":
+    if chosen.weak or chosen.estimate == "chain" or not chosen.score <= max_score:
         return None
     return Edge(i, j, chosen.transform, _information(sequence, i, j, chosen.transform, K, config), kind,
                 chosen.estimate, chosen.score)
