@@ -97,14 +97,21 @@ def masked_psnr(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> f
     return psnr(image[mask], reference[mask])
 
 
+SSIM_RADIUS = 5  # half-width of the 11 x 11 SSIM window
+
+
 def masked_ssim(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> float:
-    """Mean of the SSIM map (evaluate.ssim's window and constants) over the pixels of ``mask``."""
-    if not np.any(mask):
+    """Mean of the SSIM map (evaluate.ssim's window and constants) over the pixels of ``mask`` whose
+    whole window lies in ``mask`` (the mask eroded by the window's half-width), so pixels outside it
+    (e.g. where a warp has no value) never enter; NaN if none is left."""
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * SSIM_RADIUS + 1,) * 2, np.uint8),
+                      borderType=cv2.BORDER_CONSTANT, borderValue=1).astype(bool)
+    if not np.any(inner):
         return float("nan")
     _, full = structural_similarity(
         np.clip(image, 0, 1).astype(np.float64), np.asarray(reference, np.float64), gaussian_weights=True,
         sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=2, full=True)
-    return float(full.mean(axis=2)[mask].mean())
+    return float(full.mean(axis=2)[inner].mean())
 
 
 def dark_hole_fraction(render: np.ndarray, reference: np.ndarray, ratio: float = 0.5, min_level: float = 0.1) -> float:

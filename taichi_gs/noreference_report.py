@@ -16,8 +16,9 @@ And for held-out views only:
   change, so this is a lower bound on quality).
 - ``warped_neighbour_psnr_db`` / ``..._ssim``: the floor. The two nearest training frames (before
   and after) are warped into the held-out view through its sensor depth and the stage-3 poses, the
-  better one (PSNR) scored against the held-out frame over the pixels the warp reaches;
-  ``render_on_warp_mask_psnr_db`` / ``..._ssim`` score the render over the same pixels.
+  better one (PSNR) scored against the held-out frame over the pixels the warp reaches (SSIM: over
+  those whose whole 11 x 11 window the warp reaches); ``render_on_warp_mask_psnr_db`` / ``..._ssim``
+  score the render over the same pixels.
 """
 
 from __future__ import annotations

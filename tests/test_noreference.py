@@ -95,6 +95,11 @@ def test_masked_scores_and_dark_holes():
     assert masked_psnr(shifted, image, mask) == pytest.approx(20.0)
     assert masked_psnr(shifted, image, ~mask) == np.inf
     assert masked_ssim(image, image, mask) == pytest.approx(1.0)
+    # what lies outside the mask (a warp's empty pixels) does not enter: only windows inside it count
+    texture_image = texture(50, 50, seed=5)
+    holed = np.where(mask[..., None], texture_image, 0.0)
+    assert masked_ssim(holed, texture_image, mask) == pytest.approx(1.0)
+    assert masked_ssim(holed, texture_image, np.ones_like(mask)) < 0.9
     render = np.full((100, 100, 3), 0.6)
     render[30:70, 30:70] = 0.0
     assert dark_hole_fraction(render, np.full((100, 100, 3), 0.6)) == pytest.approx(0.16, abs=0.01)
