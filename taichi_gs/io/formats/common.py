@@ -28,12 +28,13 @@ class ReadOptions:
 def intrinsics_with_defaults(root: Path, override: IntrinsicsOverride, first_rgb: Path,
                              defaults: dict[str, float]) -> Intrinsics:
     """Intrinsics from, by priority: the flags, ROOT/intrinsics.json, then the format's ``defaults``."""
-    in_json = _json_keys(root / "intrinsics.json")
+    in_json = json_keys(root / "intrinsics.json")
     fallback = {k: v for k, v in defaults.items() if k not in in_json}
     return _resolve_intrinsics(root, IntrinsicsOverride(**{**fallback, **override.values()}), first_rgb)
 
 
-def _json_keys(path: Path) -> set[str]:
+def json_keys(path: Path) -> set[str]:
+    """The keys an intrinsics.json sets (empty if absent or unreadable: the full read reports that)."""
     if not path.is_file():
         return set()
     try:

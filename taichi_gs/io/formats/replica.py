@@ -13,7 +13,7 @@ import numpy as np
 
 from ...errors import InputError
 from ..sequence import Sequence
-from .common import NOMINAL_FPS, ReadOptions, _json_keys, intrinsics_with_defaults, numbered, rigid
+from .common import NOMINAL_FPS, ReadOptions, intrinsics_with_defaults, json_keys, numbered, rigid
 
 NAME = "replica"
 COLOR = r"frame(\d+)\.(?:jpg|png)"
@@ -34,7 +34,7 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     missing = next((p for p in depth_paths if not p.is_file()), None)
     if missing is not None:
         raise InputError(missing, "depth frame missing for its colour frame", "restore it or remove that colour frame")
-    given = _json_keys(root / "intrinsics.json") | set(options.override.values())
+    given = json_keys(root / "intrinsics.json") | set(options.override.values())
     if not all(k in given for k in ("fx", "fy", "cx", "cy")):
         raise InputError(root / "intrinsics.json", "Replica folders carry no intrinsics and none were given",
                          f"write intrinsics.json with {STANDARD} (NICE-SLAM's Replica camera) or pass --fx --fy --cx --cy")

@@ -16,7 +16,7 @@ import numpy as np
 from ...errors import InputError
 from ..sequence import IntrinsicsOverride, Sequence, _open_tum_layout
 from ..transforms import Undistort, then
-from .common import ReadOptions, _json_keys
+from .common import ReadOptions, json_keys
 
 NAME = "tum"
 # https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats#intrinsic_camera_calibration_of_the_kinect
@@ -43,7 +43,7 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     camera = options.camera
     if camera is not None and camera not in CAMERAS:
         raise InputError(root, f"unknown --camera {camera!r}", f"use one of {', '.join(CAMERAS)}")
-    given = _json_keys(root / "intrinsics.json") | set(flags)
+    given = json_keys(root / "intrinsics.json") | set(flags)
     if camera is None and not all(k in given for k in PINHOLE):
         camera = camera_from_name(root)
         if camera is None and not any(k in given for k in PINHOLE):
