@@ -44,6 +44,9 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, mask: np.ndarray, colors: np.n
     return cloud
 
 
+MIN_ICP_POINTS = 3  # fewer points than this in either cloud: no alignment is possible
+
+
 def multiscale_point_to_plane(
     source: o3d.geometry.PointCloud,
     target: o3d.geometry.PointCloud,
@@ -67,6 +70,8 @@ def multiscale_point_to_plane(
     registration = o3d.pipelines.registration
     transform = np.asarray(init, dtype=np.float64)
     fitness, rmse = 0.0, float("inf")
+    if len(source.points) < MIN_ICP_POINTS or len(target.points) < MIN_ICP_POINTS:
+        return ICPResult(transform, fitness, rmse)  # nothing to align (a frame without depth): fitness 0
     scale = _voxel_scale(source, min(voxel_sizes), max_points)
     voxel_sizes = tuple(scale * v for v in voxel_sizes)
     finest = min(voxel_sizes)
