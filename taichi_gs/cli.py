@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import errno
 import functools
-import os
 import platform
 import sys
 from collections.abc import Callable
@@ -165,9 +164,7 @@ def synth(
     overwrite: Annotated[bool, typer.Option(help="Replace an existing sequence made by synth in OUT.")] = False,
 ) -> None:
     """Generate a synthetic blurred RGB-D sequence with exact ground truth."""
-    import shutil
-    import tempfile
-
+    from .io.atomic import atomic_folder
     from .synth import SynthConfig, generate
 
     try:
@@ -183,25 +180,9 @@ def synth(
         if not (out / "synth.json").is_file():
             raise InputError(out, "folder holds something other than a synth sequence (no synth.json)",
                              "give a new folder; --overwrite only replaces sequences made by synth")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        with progress_bar("synth", frames) as update:
-            generate(config, staging, progress=lambda done, total: update(done, total))
-        staging.chmod(0o777 & ~_umask())
-        if out.is_dir():
-            shutil.rmtree(out)
-        staging.rename(out)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging)
+    with atomic_folder(out) as staging, progress_bar("synth", frames) as update:
+        generate(config, staging, progress=lambda done, total: update(done, total))
     console.print(f"wrote {frames} frames to {out}")
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 @app.command("eval")

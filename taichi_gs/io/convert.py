@@ -8,15 +8,13 @@ Everything goes to a temporary folder beside OUT, renamed onto OUT at the end; t
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from .atomic import write_text
+from .atomic import atomic_folder, write_text
 from .images import encode_depth, to_uint8, write_png
 from .sequence import Sequence
 from .trajectory import format_tum
@@ -33,16 +31,8 @@ def import_sequence(sequence: Sequence, out: Path, progress: Callable[[int, int]
         raise InputError(out, "output folder contains the input folder", "choose a new, empty --out folder")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(out, "already exists and is not empty", "choose a new --out folder or delete this one")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    try:
+    with atomic_folder(out) as staging:
         _write(sequence, staging, progress)
-        if out.exists():
-            out.rmdir()
-        staging.rename(out)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging)
     return out
 
 
