@@ -237,6 +237,20 @@ def _intrinsics_override(fx, fy, cx, cy, depth_scale):
     return IntrinsicsOverride(fx=fx, fy=fy, cx=cx, cy=cy, depth_scale=depth_scale)
 
 
+class Preset(str, Enum):
+    fast = "fast"
+    paper = "paper"
+
+
+class Stage(str, Enum):
+    pose = "pose"
+    refine = "refine"
+    deblur = "deblur"
+
+
+PresetOption = Annotated[Preset, typer.Option(help="fast: CPU-sized schedules; paper: the method's schedules.")]
+
+
 FxOption = Annotated[Optional[float], typer.Option("--fx", help="Focal length x (px); wins over intrinsics.json.")]
 FyOption = Annotated[Optional[float], typer.Option("--fy", help="Focal length y (px).")]
 CxOption = Annotated[Optional[float], typer.Option("--cx", help="Principal point x (px).")]
@@ -267,6 +281,7 @@ def pose(
     folder: Annotated[Path, typer.Argument(help="Input sequence folder (TUM or taichi-gs layout).")],
     out: Annotated[Path, typer.Option("--out", help="Output folder; results go to OUT/pose/.")],
     flow_dir: Annotated[Optional[Path], typer.Option(help="Precomputed flows (.flo or .npy, one per pair).")] = None,
+    preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
     fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
     depth_scale: DepthScaleOption = None,
@@ -279,7 +294,7 @@ def pose(
     from .pipeline import check_run_input, resolve_sections, run_stage, write_run_info
 
     _check_output_folder(folder, out)
-    config = resolve_sections("fast", config_file, only=("pose",))["pose"]
+    config = resolve_sections(preset.value, config_file, only=("pose",))["pose"]
     if flow_dir is not None:
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
     sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
@@ -288,7 +303,7 @@ def pose(
     with output_lock(out):
         check_run_input(out, sequence)
         write_run_info(out, sequence)
-        _, summary = run_stage("pose", sequence, out, config, progress_bar)
+        summary = run_stage("pose", sequence, out, config, progress_bar)
     console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
 
 
@@ -314,20 +329,6 @@ def import_(
     console.print(f"wrote {len(sequence)} frames ({sequence.source['format']}) to {out}", highlight=False)
 
 
-class Preset(str, Enum):
-    fast = "fast"
-    paper = "paper"
-
-
-class Stage(str, Enum):
-    pose = "pose"
-    refine = "refine"
-    deblur = "deblur"
-
-
-PresetOption = Annotated[Preset, typer.Option(help="fast: CPU-sized schedules; paper: the method's schedules.")]
-
-
 @app.command()
 @handles_errors
 def refine(
@@ -342,14 +343,14 @@ def refine(
     from .pipeline import open_run_sequence, resolve_sections, resolve_stage, run_stage
 
     sections = resolve_sections(preset.value, config_file, only=("pose", "refine"))
-    config = resolve_stage("refine", sections)
+    config = resolve_stage("refine", sections, out)
     for given in (poses, points):
         if given is not None and not given.is_file():
             raise InputError(given, "file not found", "give an existing TUM trajectory (--poses) or PLY (--points)")
     sequence = open_run_sequence(out)
     _init_backend()
     with output_lock(out):
-        _, summary = run_stage("refine", sequence, out, config, progress_bar, poses=poses, points=points)
+        summary = run_stage("refine", sequence, out, config, progress_bar, poses=poses, points=points)
     console.print(f"stage 2 done: {summary}; results in {out / 'refine'}")
 
 
@@ -480,7 +481,7 @@ def deblur(
     sequence = open_run_sequence(out)
     _init_backend()
     with output_lock(out):
-        _, summary = run_stage("deblur", sequence, out, config, progress_bar)
+        summary = run_stage("deblur", sequence, out, config, progress_bar)
     console.print(f"stage 3 done: {summary}; results in {out / 'deblur'}", highlight=False)
 
 

@@ -1,7 +1,7 @@
 """Stage 3's trainable scene: full 3D Gaussians (SH colour, opacity, anisotropic scale, rotation,
 position) kept on the device, trained against blurred frames through the k-view blur model, with
-3DGS-style densification (clone small / split large Gaussians with large positional gradients)
-and pruning. Exposure poses live on the host (12 numbers per frame) in :mod:`stages.deblur`."""
+3DGS-style densification and pruning (:mod:`density`, over the :mod:`gaussian_store`). Exposure
+poses live on the host (12 numbers per frame) in :mod:`stages.deblur`."""
 
 from __future__ import annotations
 
@@ -9,12 +9,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import quat_to_rotmat, raster_intrinsics
+from .density import DensityControl
+from .gaussian_store import FIELDS, GaussianStore
+from .geometry import exposure_pose_gradients, raster_intrinsics, virtual_pose
 from .photometric import affine_backward, apply_affine
-from .render import Adam, Camera, DeviceGaussians, Rasterizer, blur, exposure_pose_gradients, losses, to_device, virtual_pose
+from .render import Camera, Rasterizer, blur, losses, to_device
 from .splats import Splats, logit, rgb_to_sh_dc
 
-TRAINED = ("means", "quats", "log_scales", "opacity_logits", "colors")
+TRAINED = FIELDS  # every parameter of a full 3D Gaussian learns in stage 3
 
 
 @dataclass(frozen=True)
@@ -48,13 +50,14 @@ def exposure_taus(k: int) -> np.ndarray:
 class BlurScene:
     """Gaussians rendered at one resolution (``K`` in OpenCV convention; the rasterizer's half-pixel
     shift is applied here). :meth:`step` takes one blurred frame's k-view loss and updates the
-    Gaussians; :meth:`densify_and_prune` grows and trims them."""
+    Gaussians (``store``); ``density`` observes the steps and grows and trims them."""
 
     def __init__(self, splats: Splats, K: np.ndarray, width: int, height: int):
         self.K = raster_intrinsics(K)
         self.width, self.height = width, height
         self.rasterizer = Rasterizer()
-        self._build(_as_arrays(splats), moments=None, t=0)
+        self.store = GaussianStore(_as_arrays(splats), TRAINED)
+        self.density = DensityControl(self.count)
         dtype = self.gaussians.dtype
         self.frame = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.depth_target = to_device(np.zeros((height, width), np.float32), dtype)
@@ -64,21 +67,15 @@ class BlurScene:
         self.grad_blur = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.grad_view = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), dtype)
-        self.grad_sum = np.zeros(self.count)
-        self.grad_count = np.zeros(self.count)
 
-    def _build(self, arrays: dict[str, np.ndarray], moments: dict | None, t: int) -> None:
-        self.gaussians = DeviceGaussians.from_numpy(arrays["means"], arrays["quats"], arrays["log_scales"],
-                                                    arrays["opacity_logits"], arrays["colors"])
-        self.adam = Adam(self.gaussians.params, self.gaussians.grads, {name: 0.0 for name in TRAINED})
-        self.adam.t = t
-        for name, (m, v) in (moments or {}).items():
-            self.adam.moments[name][0].from_numpy(np.ascontiguousarray(m, np.float32))
-            self.adam.moments[name][1].from_numpy(np.ascontiguousarray(v, np.float32))
+    @property
+    def gaussians(self):
+        """The device Gaussians (``render.DeviceGaussians``) of the store."""
+        return self.store.gaussians
 
     @property
     def count(self) -> int:
-        return self.gaussians.n
+        return self.store.count
 
     def camera(self, cam_to_world: np.ndarray) -> Camera:
         return Camera(self.K, cam_to_world, self.width, self.height)
@@ -125,21 +122,11 @@ class BlurScene:
                       for j, v in enumerate(views)]
         g_start, g_end = exposure_pose_gradients(base, d_start, d_end, taus, pose_grads)
         if rates is not None:
-            self._accumulate_densify_stats(virtual_pose(base, d_start, d_end, taus[mid]))
-            self.adam.lrs.update(vars(rates))
-            self.adam.step(self.count)
+            self.density.observe(self.store, virtual_pose(base, d_start, d_end, taus[mid]), self.K[0, 0])
+            self.store.step(vars(rates))
         mse = float(np.mean((np.clip(predicted.to_numpy(), 0, 1) - frame) ** 2))
         return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
                         g_start, g_end, grad_colour)
-
-    def _accumulate_densify_stats(self, cam_to_world: np.ndarray) -> None:
-        """Add each Gaussian's positional gradient, converted to image-plane pixels (|g| z / f)."""
-        grad = np.linalg.norm(self.gaussians.grads["means"].to_numpy()[: self.count], axis=1)
-        means = self.gaussians.params["means"].to_numpy()[: self.count]
-        z = np.abs((means - cam_to_world[:3, 3]) @ cam_to_world[:3, 2])
-        seen = grad > 0
-        self.grad_sum[seen] += grad[seen] * z[seen] / self.K[0, 0]
-        self.grad_count[seen] += 1
 
     def render(self, cam_to_world: np.ndarray, min_alpha: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
         """Sharp colour (H, W, 3) and depth (H, W) at one pose, as NumPy; the depth is the blended z
@@ -154,20 +141,15 @@ class BlurScene:
 
     def add_gaussians(self, means: np.ndarray, rgb: np.ndarray, radius: np.ndarray, opacity: float) -> None:
         """Append isotropic Gaussians (centres (M, 3), colours (M, 3) in [0, 1], radii (M,) metres) with
-        zero Adam moments; higher SH bands start at 0."""
-        a, moments = self.arrays(), self._moments()
+        zero Adam moments and statistics; higher SH bands start at 0."""
         m = len(means)
-        sh = np.zeros((m,) + a["colors"].shape[1:], np.float32)
+        sh = np.zeros((m,) + self.gaussians.params["colors"].shape[1:], np.float32)
         sh[:, 0] = rgb_to_sh_dc(np.clip(rgb, 0.0, 1.0))
-        new = {"means": np.asarray(means, np.float32), "quats": np.tile(np.float32([1, 0, 0, 0]), (m, 1)),
-               "log_scales": np.repeat(np.log(np.asarray(radius, np.float32))[:, None], 3, axis=1),
-               "opacity_logits": np.full(m, logit(opacity), np.float32), "colors": sh}
-        merged = {name: np.concatenate([a[name], new[name].astype(a[name].dtype)]) for name in TRAINED}
-        moments = {name: tuple(np.concatenate([mv, np.zeros_like(new[name], dtype=mv.dtype)]) for mv in moments[name])
-                   for name in TRAINED}
-        self._build(merged, moments, self.adam.t)
-        self.grad_sum = np.concatenate([self.grad_sum, np.zeros(m)])
-        self.grad_count = np.concatenate([self.grad_count, np.zeros(m)])
+        self.store.append({
+            "means": np.asarray(means, np.float32), "quats": np.tile(np.float32([1, 0, 0, 0]), (m, 1)),
+            "log_scales": np.repeat(np.log(np.asarray(radius, np.float32))[:, None], 3, axis=1),
+            "opacity_logits": np.full(m, logit(opacity), np.float32), "colors": sh})
+        self.density.appended(m)
 
     def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int) -> np.ndarray:
         """The k-view average (H, W, 3) over an exposure, as NumPy."""
@@ -176,66 +158,19 @@ class BlurScene:
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Parameters as NumPy, trimmed to the live Gaussians."""
-        return self.gaussians.download()
+        return self.store.arrays()
 
     def splats(self) -> Splats:
         a = self.arrays()
         return Splats(a["means"], a["quats"], a["log_scales"], a["opacity_logits"], a["colors"])
 
-    def _moments(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        return {name: (m.to_numpy()[: self.count], v.to_numpy()[: self.count]) for name, (m, v) in self.adam.moments.items()}
-
-    def densify_and_prune(self, grad_threshold_px: float, split_scale: float, min_opacity: float, max_scale: float,
-                          max_gaussians: int, rng: np.random.Generator) -> tuple[int, int]:
-        """3DGS's adaptive density control: Gaussians whose mean image-plane positional gradient
-        exceeds ``grad_threshold_px`` are cloned (largest scale <= ``split_scale``, metres) or split
-        in two samples of themselves with scales / 1.6; then those with opacity < ``min_opacity`` or
-        a scale > ``max_scale`` are dropped. Never grows past ``max_gaussians``. Returns (added, removed)."""
-        a, moments = self.arrays(), self._moments()
-        mean_grad = self.grad_sum / np.maximum(self.grad_count, 1)
-        grow = np.flatnonzero(mean_grad > grad_threshold_px)
-        room = max(max_gaussians - self.count, 0)
-        if len(grow) > room:
-            grow = grow[np.argsort(-mean_grad[grow])[:room]]
-        big = a["log_scales"][grow].max(axis=1) > np.log(split_scale)
-        split, clone = grow[big], grow[~big]
-        new = {name: np.concatenate([a[name][clone], a[name][split]]) for name in TRAINED}
-        if len(split):
-            scales = np.exp(a["log_scales"][split])
-            offsets = np.einsum("nij,nj->ni", quat_to_rotmat(a["quats"][split]), rng.normal(size=scales.shape) * scales)
-            new["means"][len(clone):] += offsets
-            a["means"][split] -= offsets
-            new["log_scales"][len(clone):] -= np.log(1.6)
-            a["log_scales"][split] -= np.log(1.6)
-        merged = {name: np.concatenate([a[name], new[name]]) for name in TRAINED}
-        keep = (merged["opacity_logits"] >= logit(min_opacity)) & (merged["log_scales"].max(axis=1) <= np.log(max_scale))
-        added = len(grow)
-        zeros = {name: np.zeros_like(new[name]) for name in TRAINED}
-        moments = {name: tuple(np.concatenate([mv, zeros[name]])[keep] for mv in moments[name]) for name in TRAINED}
-        self._build({name: merged[name][keep] for name in TRAINED}, moments, self.adam.t)
-        self.grad_sum = np.zeros(self.count)
-        self.grad_count = np.zeros(self.count)
-        return added, int((~keep).sum())
-
-    def reset_opacity(self, opacity: float) -> None:
-        """Clamp every opacity to at most ``opacity`` and forget its Adam moments (3DGS's reset)."""
-        logits = np.minimum(self.arrays()["opacity_logits"], logit(opacity))
-        self.gaussians.upload(opacity_logits=logits.astype(np.float32))
-        for moment in self.adam.moments["opacity_logits"]:
-            moment.fill(0.0)
-
     def state(self) -> dict[str, np.ndarray]:
         """Everything needed to resume: parameters, Adam moments and step, densification statistics."""
-        out = {f"p_{name}": value for name, value in self.arrays().items()}
-        for name, (m, v) in self._moments().items():
-            out[f"m_{name}"], out[f"v_{name}"] = m, v
-        out.update(adam_t=np.array(self.adam.t), grad_sum=self.grad_sum, grad_count=self.grad_count)
-        return out
+        return {**self.store.state(), **self.density.state()}
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
-        moments = {name: (state[f"m_{name}"], state[f"v_{name}"]) for name in TRAINED}
-        self._build({name: state[f"p_{name}"] for name in TRAINED}, moments, int(state["adam_t"]))
-        self.grad_sum, self.grad_count = state["grad_sum"].copy(), state["grad_count"].copy()
+        self.store.load_state(state)
+        self.density.load_state(state)
 
 
 def _as_arrays(splats: Splats) -> dict[str, np.ndarray]:

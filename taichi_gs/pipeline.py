@@ -7,6 +7,9 @@ anywhere leaves the stage not done; rerunning then continues the stage from its 
 checkpoint (stage 1's per-pair files, stages 2 and 3's ``checkpoint.npz``), which belong to the
 fingerprint in ``OUT/<stage>/inputs.json``: a stage whose inputs changed starts from scratch. When
 a stage runs, every later stage is cleared, since its inputs change.
+
+Nothing here is specific to one stage: each stage declares itself once in its own module
+(``stages/declaration.py``), and this module loops over the declarations.
 """
 
 from __future__ import annotations
@@ -19,7 +22,6 @@ import shutil
 import sys
 import time
 from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,22 +31,15 @@ from .errors import InputError
 from .io.atomic import write_text
 from .io import jsonout
 from .io.sequence import Sequence
+from .stages.declaration import STAGE_NAMES as STAGES
+from .stages.declaration import ProgressFactory, StageContext, StageRun, declared, later_stages
 from .validation import validate_sections
 
 log = logging.getLogger("taichi_gs")
-STAGES = ("pose", "refine", "deblur")
 DONE_FILE = "done.json"
-STAGE_OUTPUTS = {
-    "pose": ("trajectory.txt", "points.ply", "pairs.json"),
-    "refine": ("trajectory.txt", "splats.ply", "points.ply"),
-    "deblur": ("trajectory.txt", "exposure.txt", "splats.ply", "split.json"),
-}
+CONFIG_FILE = "config.toml"
 RUN_INFO = "run.json"
 INPUTS_FILE = "inputs.json"
-STAGE_TITLES = {"pose": "stage 1: pose", "refine": "stage 2: refine", "deblur": "stage 3: deblur"}
-
-# progress_factory(description, total) -> context manager yielding update(done, total, **info)
-ProgressFactory = Callable[[str, int], AbstractContextManager[Callable[..., None]]]
 
 
 @dataclass
@@ -114,27 +109,12 @@ def open_run_sequence(run_dir: Path, gt: Path | None = None) -> Sequence:
                          "rerun 'taichi-gs reconstruct SEQUENCE --out' on this folder to rewrite it") from None
 
 
-def stage_presets(stage: str) -> dict[str, Any]:
-    """A stage's configs by preset name ("fast": CPU-sized schedules; "paper": the method's)."""
-    if stage == "pose":
-        from .stages.pose import PoseConfig
-
-        return {"fast": PoseConfig(), "paper": PoseConfig(icp_max_points=0)}  # paper: ICP on every point
-    if stage == "refine":
-        from .stages.refine import PRESETS
-
-        return PRESETS
-    from .stages.deblur import PRESETS
-
-    return PRESETS
-
-
 def resolve_sections(preset: str, config_file: Path | None = None, only: tuple[str, ...] = STAGES) -> dict[str, Any]:
     """The preset's configs of the ``only`` stages, overridden by a TOML file's tables (the file
     may hold every stage's table; all are checked, those of other stages are not used)."""
     sections = {}
     for stage in STAGES:
-        presets = stage_presets(stage)
+        presets = declared(stage).presets
         if preset not in presets:
             raise InputError(None, f"unknown preset {preset!r}", f"use one of {', '.join(presets)}")
         sections[stage] = presets[preset]
@@ -159,21 +139,14 @@ def stage_inputs(stage: str, sequence: Sequence, out: Path, section: Any, poses:
     """The fingerprint record of a stage run with these inputs (see ``provenance.py``)."""
     from .provenance import stage_fingerprint
 
-    upstream: dict[str, Path] = {}
-    dirs: list[Path] = []
-    if stage == "pose" and getattr(section, "flow_dir", ""):
-        dirs.append(Path(section.flow_dir))
-    elif stage == "refine":
-        upstream = {"poses": poses or out / "pose" / "trajectory.txt", "points": points or out / "pose" / "points.ply"}
-    elif stage == "deblur":
-        upstream = {"poses": out / "refine" / "trajectory.txt", "splats": out / "refine" / "splats.ply"}
-    return stage_fingerprint(stage, sequence, _config_record(section), upstream, dirs)
+    upstream = declared(stage).inputs(out, section, poses, points)
+    return stage_fingerprint(stage, sequence, _config_record(section), upstream.files, upstream.folders)
 
 
 def stage_done(out: Path, stage: str, fingerprint: dict[str, Any]) -> bool:
     """True when the stage finished with these inputs and config and all its outputs are present."""
     stage_dir = out / stage
-    if not all((stage_dir / name).is_file() for name in STAGE_OUTPUTS[stage]):
+    if not all((stage_dir / name).is_file() for name in declared(stage).outputs):
         return False
     recorded = read_done(out, stage)
     return recorded is not None and recorded.get("fingerprint") == fingerprint["sha256"]
@@ -209,7 +182,7 @@ def _prepare_stage_dir(out: Path, stage: str, fingerprint: dict[str, Any]) -> No
         shutil.rmtree(stage_dir)
     else:
         (stage_dir / DONE_FILE).unlink(missing_ok=True)
-    later = STAGES[STAGES.index(stage) + 1:]
+    later = later_stages(stage)
     if later:
         clear_stages(out, later[0])
     write_text(marker, jsonout.dumps(fingerprint, indent=2) + "\n")
@@ -230,51 +203,26 @@ def _arch() -> str:
 
 
 def run_stage(stage: str, sequence: Sequence, out: Path, section: Any, progress: ProgressFactory,
-              poses: Path | None = None, points: Path | None = None) -> tuple[Any, str]:
-    """Run one stage on ``sequence`` into ``out`` and mark it done; returns (its config as run, a
-    one-line summary). ``poses``/``points`` replace stage 1's outputs as stage 2's inputs. Caches and
-    checkpoints of earlier runs are resumed only if made from the same inputs; later stages are cleared."""
+              poses: Path | None = None, points: Path | None = None) -> str:
+    """Run one stage on ``sequence`` into ``out`` with its resolved config (``resolve_stage``), write
+    its ``config.toml`` and mark it done; returns a one-line summary. ``poses``/``points`` replace
+    stage 1's outputs as stage 2's inputs. Caches and checkpoints of earlier runs are resumed only if
+    made from the same inputs; later stages are cleared."""
     start = time.perf_counter()
     fingerprint = stage_inputs(stage, sequence, out, section, poses, points)
     _prepare_stage_dir(out, stage, fingerprint)
-    section, summary, warnings = _execute(stage, sequence, out, section, progress, poses, points)
-    _mark_done(out, stage, section, fingerprint, time.perf_counter() - start, _arch(), summary, warnings)
-    return section, summary
+    write_config(out / stage / CONFIG_FILE, {stage: section})
+    result = _execute(stage, StageContext(sequence, out, section, progress, poses, points))
+    _mark_done(out, stage, section, fingerprint, time.perf_counter() - start, _arch(), result.summary, result.warnings)
+    return result.summary
 
 
-def _execute(stage: str, sequence: Sequence, out: Path, section: Any, progress: ProgressFactory,
-             poses: Path | None, points: Path | None) -> tuple[Any, str, list[str]]:
-    """The stage's own work: (its config as run, a one-line summary, its warnings)."""
-    if stage == "pose":
-        from .stages.pose import run_pose
-
-        with progress(STAGE_TITLES[stage], len(sequence) - 1) as update:
-            result = run_pose(sequence, out, section, progress=lambda done, total: update(done, total))
-        weak = sum(1 for p in result.pairs if p.get("weak"))
-        summary = f"{len(sequence) - 1} pairs, {weak} weak"
-    elif stage == "refine":
-        from .stages.refine import load_stage1, run_refine
-
-        _, initial, cloud, colors, voxel = load_stage1(out, poses, points)
-        run_section = section if section.voxel_size > 0 else dataclasses.replace(section, voxel_size=voxel)
-        write_config(out / "refine" / "config.toml", {"refine": run_section})
-        with progress(STAGE_TITLES[stage], run_section.iterations_per_frame * len(sequence)) as update:
-            result = run_refine(sequence, initial, cloud, colors, out, run_section, progress=update)
-        summary = f"{result.gaussians} Gaussians, {result.seconds_per_iteration * 1000:.1f} ms/iteration"
-        section = run_section
-    elif stage == "deblur":
-        from .stages.deblur import run_deblur
-
-        write_config(out / "deblur" / "config.toml", {"deblur": section})
-        with progress(STAGE_TITLES[stage], 1) as update:
-            result = run_deblur(sequence, out, section, progress=update)
-        summary = result.summary()
-    else:
-        raise ValueError(f"unknown stage {stage!r}")
-    warnings = [str(w) for w in getattr(result, "warnings", [])]
-    for warning in warnings:
+def _execute(stage: str, context: StageContext) -> StageRun:
+    """The stage's own work, its warnings logged."""
+    result = declared(stage).run(context)
+    for warning in result.warnings:
         log.warning("%s: %s", stage, warning)
-    return section, summary, warnings
+    return result
 
 
 def reconstruct(
@@ -295,10 +243,10 @@ def reconstruct(
             raise InputError(None, f"unknown stage {force!r} for --force", f"use one of {', '.join(STAGES)}")
         clear_stages(out, force)
     write_run_info(out, sequence)
-    write_config(out / "config.toml", sections)
+    write_config(out / CONFIG_FILE, sections)
     reports: list[StageReport] = []
     for stage in STAGES:
-        section = resolve_stage(stage, sections)
+        section = resolve_stage(stage, sections, out)
         fingerprint = stage_inputs(stage, sequence, out, section)
         if stage_done(out, stage, fingerprint):
             done = read_done(out, stage) or {}
@@ -306,7 +254,7 @@ def reconstruct(
                                  str(done.get("summary", "")))
         else:
             start = time.perf_counter()
-            _, summary = run_stage(stage, sequence, out, section, progress)
+            summary = run_stage(stage, sequence, out, section, progress)
             report = StageReport(stage, True, time.perf_counter() - start, peak_rss_mb(), summary)
         reports.append(report)
         if on_stage is not None:
@@ -314,12 +262,10 @@ def reconstruct(
     return reports
 
 
-def resolve_stage(stage: str, sections: dict[str, Any]) -> Any:
-    """A stage's config with values that depend on earlier stages filled in (refine's voxel size)."""
-    section = sections[stage]
-    if stage == "refine" and section.voxel_size <= 0:
-        section = dataclasses.replace(section, voxel_size=sections["pose"].voxel_size_m)
-    return section
+def resolve_stage(stage: str, sections: dict[str, Any], out: Path | None = None) -> Any:
+    """A stage's config with the values that depend on earlier stages filled in (by the stage's own
+    rule: refine's voxel size comes from stage 1's, as run in ``out`` when it ran there)."""
+    return declared(stage).resolve(sections[stage], sections, out)
 
 
 def iter_stage_records(out: Path) -> Iterator[tuple[str, dict[str, Any]]]:

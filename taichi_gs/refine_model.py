@@ -6,10 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from .gaussian_store import GaussianStore
 from .geometry import raster_intrinsics
-from .kernels import losses
-from .kernels.optim import Adam
-from .kernels.splat import Camera, DeviceGaussians, Rasterizer, to_device
+from .render import Camera, Rasterizer, losses, to_device
 from .splats import logit
 
 FIXED_SCALE = ("means", "opacity_logits")
@@ -55,32 +54,24 @@ class DepthRefiner:
         self.K = raster_intrinsics(K)
         self.width, self.height = width, height
         self.rasterizer = Rasterizer()
-        self.kept = np.arange(n)
-        params = {"means": np.asarray(means, np.float32), "opacity_logits": np.asarray(opacity_logits, np.float32)}
+        arrays = {"means": np.asarray(means, np.float32), "opacity_logits": np.asarray(opacity_logits, np.float32),
+                  "log_scales": np.full((n, 3 if free_scale else 1), self.log_scale, np.float32),
+                  "colors": np.zeros((n, 1, 3), np.float32)}
         if free_scale:
-            params["log_scales"] = np.full((n, 3), self.log_scale, np.float32)
-            params["quats"] = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
-        self._build(params, moments=None, t=0)
+            arrays["quats"] = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
+        self.store = GaussianStore(arrays, self.trained, isotropic=not free_scale)
+        self.kept = np.arange(n)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_alpha = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
 
-    def _build(self, params: dict[str, np.ndarray], moments: dict | None, t: int) -> None:
-        n = len(params["means"])
-        fixed_scales = np.full(n, self.log_scale, np.float32)
-        self.gaussians = DeviceGaussians.from_numpy(
-            params["means"], params.get("quats"), params.get("log_scales", fixed_scales), params["opacity_logits"],
-            np.zeros((n, 1, 3), np.float32), isotropic=not self.free_scale,
-        )
-        self.adam = Adam(self.gaussians.params, self.gaussians.grads, {name: 0.0 for name in self.trained})
-        self.adam.t = t
-        if moments:
-            for name, (m, v) in moments.items():
-                self.adam.moments[name][0].from_numpy(np.ascontiguousarray(m))
-                self.adam.moments[name][1].from_numpy(np.ascontiguousarray(v))
+    @property
+    def gaussians(self):
+        """The device Gaussians (``render.DeviceGaussians``) of the store."""
+        return self.store.gaussians
 
     @property
     def count(self) -> int:
-        return self.gaussians.n
+        return self.store.count
 
     def _depth_backward(self, target_depth: np.ndarray, cam_to_world: np.ndarray, weight: float,
                         coverage_weight: float) -> tuple[float, float, np.ndarray]:
@@ -110,8 +101,7 @@ class DepthRefiner:
             self.gaussians.params["opacity_logits"], self.gaussians.grads["opacity_logits"], n,
             weight=lambda_opacity / (self.width * self.height),
         )
-        self.adam.lrs.update({name: lrs.get(name, 0.0) for name in self.trained})
-        self.adam.step(n)
+        self.store.step(lrs)
         depth, coverage = (float(np.mean([r[k] for r in results])) for k in (0, 1))
         return {"depth": depth, "coverage": coverage, "opacity": opacity / max(n, 1)}, [r[2] for r in results]
 
@@ -123,55 +113,45 @@ class DepthRefiner:
 
     def params(self) -> dict[str, np.ndarray]:
         """The trained parameters of the live Gaussians as NumPy."""
-        return {name: self.gaussians.params[name].to_numpy()[: self.count] for name in self.trained}
+        return {name: self.store.array(name) for name in self.trained}
 
     def means(self) -> np.ndarray:
-        return self.gaussians.params["means"].to_numpy()[: self.count]
+        return self.store.array("means")
 
     def opacity_logits(self) -> np.ndarray:
-        return self.gaussians.params["opacity_logits"].to_numpy()[: self.count]
+        return self.store.array("opacity_logits")
 
     def log_scales(self) -> np.ndarray:
         """(N, 3) log scales (all equal to the initial one unless ``free_scale``)."""
         if self.free_scale:
-            return self.gaussians.params["log_scales"].to_numpy()[: self.count]
+            return self.store.array("log_scales")
         return np.full((self.count, 3), self.log_scale, np.float32)
 
     def quats(self) -> np.ndarray | None:
         """(N, 4) rotations when ``free_scale``, else None (isotropic)."""
-        return self.gaussians.params["quats"].to_numpy()[: self.count] if self.free_scale else None
+        return self.store.array("quats") if self.free_scale else None
 
     def kept_indices(self) -> np.ndarray:
         """Indices, into the initial Gaussians, of those still alive."""
         return self.kept.copy()
 
-    def _moments(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        return {name: (m.to_numpy()[: self.count], v.to_numpy()[: self.count]) for name, (m, v) in self.adam.moments.items()}
-
     def prune(self, min_opacity: float) -> int:
-        """Drop Gaussians with opacity below ``min_opacity`` (keeping their survivors' Adam state)."""
+        """Drop Gaussians with opacity below ``min_opacity`` (their survivors keep their Adam state)."""
         keep = self.opacity_logits() >= logit(min_opacity)
         if keep.all() or not keep.any():
             return 0
-        moments = {name: (m[keep], v[keep]) for name, (m, v) in self._moments().items()}
+        self.store.keep(keep)
         self.kept = self.kept[keep]
-        self._build({name: value[keep] for name, value in self.params().items()}, moments, self.adam.t)
         return int((~keep).sum())
 
     def reset_opacity(self, opacity: float) -> None:
         """Set every opacity to ``opacity`` and forget its Adam moments (as 3DGS's reset does)."""
-        self.gaussians.upload(opacity_logits=np.full(self.count, logit(opacity), np.float32))
-        for moment in self.adam.moments["opacity_logits"]:
-            moment.fill(0.0)
+        self.store.reset("opacity_logits", np.full(self.count, logit(opacity), np.float32))
 
     def state(self) -> dict[str, np.ndarray]:
         """Everything needed to resume: parameters, kept indices, Adam moments and step."""
-        out = {**self.params(), "kept": self.kept, "adam_t": np.array(self.adam.t)}
-        for name, (m, v) in self._moments().items():
-            out[f"m_{name}"], out[f"v_{name}"] = m, v
-        return out
+        return {**self.store.state(), "kept": self.kept}
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
         self.kept = np.asarray(state["kept"])
-        moments = {name: (state[f"m_{name}"], state[f"v_{name}"]) for name in self.trained}
-        self._build({name: state[name] for name in self.trained}, moments, int(state["adam_t"]))
+        self.store.load_state(state)

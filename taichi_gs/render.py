@@ -31,7 +31,7 @@ Stage 2 (isotropic fixed scale, depth only; ``K`` from ``geometry.raster_intrins
 Stage 3 (k virtual views of one blurred frame)::
 
     taus = np.linspace(0, 1, k)
-    views = [rast.forward(gs, Camera(K, virtual_pose(T, d_s, d_e, tau), w, h), view=j)
+    views = [rast.forward(gs, Camera(K, virtual_pose(T, d_s, d_e, tau), w, h), view=j)  # geometry.py
              for j, tau in enumerate(taus)]
     blur.average([v.rgb for v in views], blurred)
     g_blur.fill(0.0)
@@ -39,7 +39,7 @@ Stage 3 (k virtual views of one blurred frame)::
     blur.spread(g_blur, k, g_view)                          # dL/d(each view) = dL/dblur / k
     gs.zero_grad()
     pose_grads = [rast.backward(gs, v, d_rgb=g_view) for v in views]
-    g_s, g_e = exposure_pose_gradients(T, d_s, d_e, taus, pose_grads)
+    g_s, g_e = exposure_pose_gradients(T, d_s, d_e, taus, pose_grads)   # from geometry.py
     adam.step()
 
 Conventions: ``K`` uses the rasterizer's pixel centres (pixel u samples image coordinate u + 0.5;
@@ -57,7 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import adjoint, raster_intrinsics, se3_exp, se3_log
+from .geometry import raster_intrinsics
 from .kernels import blur, losses, runtime
 from .kernels.optim import Adam
 from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, to_device
@@ -151,30 +151,3 @@ def render_views(
     for pose in poses:
         view = rasterizer.forward(gaussians, Camera(K_raster, pose, int(width), int(height)), background=background)
         yield view.to_numpy()
-
-
-def virtual_pose(base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, tau: float) -> np.ndarray:
-    """Pose at exposure fraction tau: ``base @ exp((1 - tau) d_start + tau d_end)``."""
-    return base @ se3_exp((1.0 - tau) * np.asarray(d_start) + tau * np.asarray(d_end))
-
-
-def exposure_pose_gradients(
-    base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus, pose_grads
-) -> tuple[np.ndarray, np.ndarray]:
-    """Chain the rasterizer's pose gradients of the k virtual views (left perturbations, one 6-vector
-    per tau) to the exposure offsets: returns (dL/d d_start, dL/d d_end) for :func:`virtual_pose`.
-
-    Uses dL/dxi = J_r(xi)^T Ad(T_v)^T g_v with xi = (1 - tau) d_start + tau d_end; the right
-    Jacobian J_r is taken by central differences of se3_log (6 evaluations, exact to ~1e-9)."""
-    g_start, g_end = np.zeros(6), np.zeros(6)
-    for tau, g in zip(taus, pose_grads):
-        xi = (1.0 - tau) * np.asarray(d_start, dtype=np.float64) + tau * np.asarray(d_end, dtype=np.float64)
-        inv = np.linalg.inv(se3_exp(xi))
-        h = 1e-6
-        j_right = np.stack([
-            (se3_log(inv @ se3_exp(xi + h * e)) - se3_log(inv @ se3_exp(xi - h * e))) / (2 * h) for e in np.eye(6)
-        ], axis=1)
-        g_xi = j_right.T @ (adjoint(virtual_pose(base, d_start, d_end, tau)).T @ np.asarray(g, dtype=np.float64))
-        g_start += (1.0 - tau) * g_xi
-        g_end += tau * g_xi
-    return g_start, g_end

@@ -16,10 +16,9 @@ from .io.jsonout import finite_or_null, write_json
 from .io.sequence import Sequence, read_color, read_depth
 from .io.trajectory import read_tum
 from .noreference_report import no_reference_metrics
-from .pipeline import iter_stage_records, open_run_sequence
+from .pipeline import STAGES, iter_stage_records, open_run_sequence
 from .plots import colour_map, colour_scale, image_grid, line_plot, trajectory_plot
 
-STAGES = ("pose", "refine", "deblur")
 GRID_VIEWS = 4
 GRID_MIN_WIDTH = 240  # pixels per grid tile at least
 IMAGE_NULL_REASONS = {

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from taichi_gs.deblur_model import TRAINED, BlurScene
+from taichi_gs.density import reset_opacity
 from taichi_gs.geometry import quat_to_rotmat
 from taichi_gs.splats import Splats, logit
 
@@ -36,20 +37,20 @@ GRAD = np.array([3.0, 2.0, 0.5, 0.2, 0.1, 0.99])  # mean image-plane gradient (p
 
 def _model(grad_mean: np.ndarray = GRAD) -> BlurScene:
     model = BlurScene(_scene(), K, 32, 24)
-    model.grad_count = np.full(model.count, 4.0)
-    model.grad_sum = grad_mean * model.grad_count
+    model.density.grad_count = np.full(model.count, 4.0)
+    model.density.grad_sum = grad_mean * model.density.grad_count
     # distinctive Adam moments: row i of every parameter holds i + 1 (first) and 10 (i + 1) (second)
-    for name, (m, v) in model.adam.moments.items():
+    for name, (m, v) in model.store.adam.moments.items():
         shape = m.shape
         rows = np.arange(1, shape[0] + 1, dtype=np.float32).reshape((-1,) + (1,) * (len(shape) - 1))
         m.from_numpy(np.ascontiguousarray(np.broadcast_to(rows, shape), np.float32))
         v.from_numpy(np.ascontiguousarray(np.broadcast_to(10 * rows, shape), np.float32))
-    model.adam.t = 7
+    model.store.adam.t = 7
     return model
 
 
 def _densify(model: BlurScene, seed: int = 0, max_gaussians: int = 100) -> tuple[int, int]:
-    return model.densify_and_prune(THRESHOLD, SPLIT_SCALE, MIN_OPACITY, MAX_SCALE, max_gaussians,
+    return model.density.densify_and_prune(model.store, THRESHOLD, SPLIT_SCALE, MIN_OPACITY, MAX_SCALE, max_gaussians,
                                    np.random.default_rng(seed))
 
 
@@ -83,15 +84,15 @@ def test_clone_split_prune_known_answer():
     assert np.all(after["opacity_logits"] >= logit(MIN_OPACITY))
     assert np.all(after["log_scales"].max(axis=1) <= np.log(MAX_SCALE))
     # statistics restart; the Adam step count survives
-    np.testing.assert_array_equal(model.grad_sum, np.zeros(6))
-    np.testing.assert_array_equal(model.grad_count, np.zeros(6))
-    assert model.adam.t == 7
+    np.testing.assert_array_equal(model.density.grad_sum, np.zeros(6))
+    np.testing.assert_array_equal(model.density.grad_count, np.zeros(6))
+    assert model.store.adam.t == 7
 
 
 def test_adam_moments_follow_their_gaussians():
     model = _model()
     _densify(model)
-    for name, (m, v) in model.adam.moments.items():
+    for name, (m, v) in model.store.adam.moments.items():
         first, second = m.to_numpy()[: model.count], v.to_numpy()[: model.count]
         row_ids = first.reshape(model.count, -1)
         # survivors keep their own moments (original rows 0, 1, 2, 5 held 1, 2, 3, 6); new rows start at 0
@@ -123,8 +124,8 @@ def test_nothing_above_threshold_only_prunes():
 def test_reset_opacity_clamps_and_forgets_opacity_moments():
     model = _model()
     before = model.arrays()
-    moments_before = {name: (m.to_numpy(), v.to_numpy()) for name, (m, v) in model.adam.moments.items()}
-    model.reset_opacity(0.01)
+    moments_before = {name: (m.to_numpy(), v.to_numpy()) for name, (m, v) in model.store.adam.moments.items()}
+    reset_opacity(model.store, 0.01)
     after = model.arrays()
     opacity = 1 / (1 + np.exp(-after["opacity_logits"].astype(np.float64)))
     was = 1 / (1 + np.exp(-before["opacity_logits"].astype(np.float64)))
@@ -134,9 +135,36 @@ def test_reset_opacity_clamps_and_forgets_opacity_moments():
     for name in TRAINED:
         if name != "opacity_logits":
             np.testing.assert_array_equal(after[name], before[name], err_msg=name)
-    for name, (m, v) in model.adam.moments.items():
+    for name, (m, v) in model.store.adam.moments.items():
         if name == "opacity_logits":
             assert not m.to_numpy().any() and not v.to_numpy().any()
         else:
             np.testing.assert_array_equal(m.to_numpy(), moments_before[name][0], err_msg=name)
             np.testing.assert_array_equal(v.to_numpy(), moments_before[name][1], err_msg=name)
+
+
+def test_the_store_carries_moments_through_keep_append_and_reset():
+    from taichi_gs.gaussian_store import GaussianStore
+
+    model = _model()
+    store = GaussianStore(model.arrays(), TRAINED)
+    for name, (m, v) in model.store.moments().items():
+        store.adam.moments[name][0].from_numpy(np.ascontiguousarray(m))
+        store.adam.moments[name][1].from_numpy(np.ascontiguousarray(v))
+    store.adam.t = 7
+    store.keep(np.array([True, False, True, True, False, True]))
+    rows = {name: value[:1] for name, value in store.arrays().items()}
+    store.append(rows)
+    assert store.count == 5 and store.adam.t == 7
+    for name, (m, v) in store.moments().items():
+        lead = m.reshape(5, -1)[:, 0]
+        np.testing.assert_array_equal(lead, [1, 3, 4, 6, 0], err_msg=name)  # survivors' rows, then a fresh one
+        np.testing.assert_array_equal(v.reshape(5, -1)[:, 0], [10, 30, 40, 60, 0], err_msg=name)
+    store.reset("colors", np.zeros((5, 1, 3)))
+    assert not store.moments()["colors"][0].any() and store.moments()["means"][0].any()
+    restored = GaussianStore(model.arrays(), TRAINED)
+    restored.load_state(store.state())
+    for name in store.fields:
+        np.testing.assert_array_equal(restored.arrays()[name], store.arrays()[name])
+    with pytest.raises(ValueError, match="lack"):
+        store.append({"means": np.zeros((1, 3))})

@@ -15,8 +15,9 @@ import pytest
 from taichi_gs import pipeline
 from taichi_gs.errors import InputError
 from taichi_gs.io.sequence import IntrinsicsOverride, load_sequence
+from taichi_gs.stages.declaration import StageRun, declared
 from taichi_gs.pipeline import (
-    STAGE_OUTPUTS, STAGES, open_run_sequence, reconstruct, resolve_sections, resolve_stage, run_stage, stage_done,
+    STAGES, open_run_sequence, reconstruct, resolve_sections, resolve_stage, run_stage, stage_done,
     stage_inputs,
 )
 
@@ -31,14 +32,15 @@ def fake_stages(monkeypatch):
     """Stages that only write their output files (content depends on config and input); records which ran."""
     calls: list[str] = []
 
-    def execute(stage, sequence, out, section, progress, poses=None, points=None):
+    def execute(stage, context):
         calls.append(stage)
+        out, sequence = context.out, context.sequence
         (out / stage).mkdir(parents=True, exist_ok=True)
-        content = json.dumps([dataclasses.asdict(section), str(sequence.root), sequence.intrinsics.depth_scale],
+        content = json.dumps([dataclasses.asdict(context.config), str(sequence.root), sequence.intrinsics.depth_scale],
                              default=str)
-        for name in STAGE_OUTPUTS[stage]:
+        for name in declared(stage).outputs:
             (out / stage / name).write_text(content)
-        return section, "fake", []
+        return StageRun("fake")
 
     monkeypatch.setattr(pipeline, "_execute", execute)
     return calls
@@ -203,3 +205,31 @@ def test_a_corrupt_run_record_is_a_clear_error(tmp_path):
         open_run_sequence(tmp_path)
     with pytest.raises(InputError, match="run folder not found"):
         open_run_sequence(tmp_path / "missing")
+
+
+def test_every_stage_is_declared_once_with_both_presets():
+    for name in STAGES:
+        stage = declared(name)
+        assert stage.name == name and stage.title.startswith("stage ")
+        assert set(stage.presets) == {"fast", "paper"}
+        assert all(type(config) is stage.config_type for config in stage.presets.values())
+        assert stage.outputs and "trajectory.txt" in stage.outputs
+    assert declared("pose").presets["paper"].icp_max_points == 0  # the method's ICP on every point
+    with pytest.raises(ValueError, match="unknown stage"):
+        declared("sharpen")
+
+
+def test_the_pipeline_writes_every_stage_config_and_refine_takes_the_voxel_stage_1_ran_with(
+        own_layout, tmp_path, fake_stages):
+    sequence = load_sequence(own_layout)
+    sections = resolve_sections("fast")
+    pose = dataclasses.replace(sections["pose"], voxel_size_m=0.031)
+    run_stage("pose", sequence, tmp_path, pose, _no_progress)  # as `taichi-gs pose --config` with its own voxel
+    assert "voxel_size_m = 0.031" in (tmp_path / "pose" / "config.toml").read_text()
+    assert resolve_stage("refine", sections).voxel_size == sections["pose"].voxel_size_m  # no run folder yet
+    refine = resolve_stage("refine", sections, tmp_path)  # as `taichi-gs refine` without that config
+    assert refine.voxel_size == 0.031
+    run_stage("refine", sequence, tmp_path, refine, _no_progress)
+    assert "voxel_size = 0.031" in (tmp_path / "refine" / "config.toml").read_text()
+    run_stage("deblur", sequence, tmp_path, sections["deblur"], _no_progress)
+    assert (tmp_path / "deblur" / "config.toml").is_file()

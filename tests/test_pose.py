@@ -143,7 +143,6 @@ def test_run_pose_writes_outputs_that_match_ground_truth(tmp_path, walk_sequence
     assert pairs["summary"].startswith("4 pairs, 0 weak")
     assert [p["index"] for p in pairs["pairs"]] == [0, 1, 2, 3]
     assert {"flow_residual_px", "icp_fitness", "icp_inlier_rmse_m", "weak", "reason", "seconds"} <= set(pairs["pairs"][0])
-    assert (tmp_path / "pose" / "config.toml").is_file()
     assert len(list((tmp_path / "pose" / "pairs").glob("*.json"))) == 4
 
 

@@ -281,7 +281,7 @@ def test_cuda_backend_matches() -> None:
 
 def test_exposure_pose_gradients_chain_virtual_views() -> None:
     """Blur of k virtual views: the chained pose gradients match finite differences of the offsets."""
-    from taichi_gs.render import exposure_pose_gradients, virtual_pose
+    from taichi_gs.geometry import exposure_pose_gradients, virtual_pose
 
     scene = make_scene(9, n=30, n_sh=1)
     loss = LossF64(scene)

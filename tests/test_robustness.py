@@ -75,7 +75,9 @@ def _kill_during(stage: str, sig: int, seq: Path, out: Path, config: Path) -> tu
     with open(log, "w") as stderr:
         process = subprocess.Popen(
             [sys.executable, "-m", "taichi_gs.cli", "--arch", "cpu", "reconstruct", str(seq), "--out", str(out),
-             "--config", str(config)], stdout=subprocess.DEVNULL, stderr=stderr)
+             "--config", str(config)], stdout=subprocess.DEVNULL, stderr=stderr,
+            # a shell's background job ignores SIGINT, and a child would inherit that: restore the default
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         deadline = time.monotonic() + 240
         while not (out / IN_PROGRESS[stage]).exists():
             if process.poll() is not None or time.monotonic() > deadline:

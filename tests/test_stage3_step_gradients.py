@@ -17,7 +17,8 @@ from taichi_gs import deblur_model
 from taichi_gs.deblur_model import BlurScene, exposure_taus
 from taichi_gs.geometry import raster_intrinsics, se3_exp
 from taichi_gs.kernels import runtime
-from taichi_gs.render import Camera, DeviceGaussians, Rasterizer, virtual_pose
+from taichi_gs.geometry import virtual_pose
+from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
 from taichi_gs.splats import Splats
 
 WIDTH, HEIGHT = 40, 32

@@ -9,7 +9,7 @@ import pytest
 
 from taichi_gs.deblur_model import BlurScene
 from taichi_gs.geometry import se3_exp
-from taichi_gs.render import virtual_pose
+from taichi_gs.geometry import virtual_pose
 from taichi_gs.splats import Splats
 from taichi_gs.stages.deblur import DeblurConfig, _Frames, _refine_test_exposure
 
@@ -51,8 +51,8 @@ def test_refinement_recovers_the_exposure_with_the_scene_frozen(seed):
     start = np.stack([0.33 * TRUE[0] + shift, 0.33 * TRUE[1] + shift])
     config = DeblurConfig(k=K_VIEWS, test_pose_iterations=120, lr_test_pose=2e-3, lambda_dssim=0.2)
 
-    params, t = model.arrays(), model.adam.t
-    stats = model.grad_sum.copy(), model.grad_count.copy()
+    params, t = model.arrays(), model.store.adam.t
+    stats = model.density.grad_sum.copy(), model.density.grad_count.copy()
     refined, colour = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
 
     assert _error(refined) < 0.1 * _error(start), (_error(start), _error(refined))
@@ -66,7 +66,7 @@ def test_refinement_recovers_the_exposure_with_the_scene_frozen(seed):
     # scene frozen: parameters, optimiser step and densification statistics unchanged
     for name, value in model.arrays().items():
         np.testing.assert_array_equal(value, params[name], err_msg=name)
-    assert model.adam.t == t
-    np.testing.assert_array_equal(model.grad_sum, stats[0])
-    np.testing.assert_array_equal(model.grad_count, stats[1])
+    assert model.store.adam.t == t
+    np.testing.assert_array_equal(model.density.grad_sum, stats[0])
+    np.testing.assert_array_equal(model.density.grad_count, stats[1])
     np.testing.assert_array_equal(colour, np.eye(3, 4))  # colour_affine off: identity

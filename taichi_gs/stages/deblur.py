@@ -12,7 +12,6 @@ the scene frozen (no ground truth places a camera).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from collections.abc import Callable
@@ -23,9 +22,10 @@ import cv2
 import numpy as np
 
 from ..deblur_model import BlurScene, Rates
+from ..density import DensitySchedule
 from ..errors import InputError
-from ..geometry import invert, se3_log
-from ..io.atomic import atomic_path, write_text
+from ..geometry import invert, se3_log, virtual_pose
+from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import read_splats, write_splats
 from ..io.sequence import Sequence
@@ -34,9 +34,11 @@ from ..io.images import encode_depth, to_uint8, write_png
 from ..noreference import laplacian_variance, sharpest_holdout
 from ..photometric import IDENTITY, apply_affine, identity_penalty
 from ..plots import image_grid, line_plot
-from ..render import virtual_pose
 from ..splats import Splats
+from . import checkpoint
+from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .divergence import DivergenceGuard
+from .row_adam import RowAdam
 from .schedule import downsample_depth, exp_decay, scaled_intrinsics
 
 
@@ -233,26 +235,6 @@ def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, 
     return np.stack([middle - scale * half, middle + scale * half])
 
 
-class ExposureAdam:
-    """Adam on per-frame host parameters (the (N, 2, 6) exposure offsets, or N colour transforms of
-    ``shape``), one frame at a time."""
-
-    def __init__(self, n_frames: int, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-8,
-                 shape: tuple[int, ...] = (2, 6)):
-        self.moments = np.zeros((n_frames, 2, *shape))
-        self.steps = np.zeros(n_frames, dtype=np.int64)
-        self.beta1, self.beta2, self.eps = beta1, beta2, eps
-
-    def step(self, d: np.ndarray, grad: np.ndarray, frame: int, lr: float) -> np.ndarray:
-        """Updated parameters (e.g. (2, 6) offsets) of ``frame`` given their gradient."""
-        self.steps[frame] += 1
-        t = self.steps[frame]
-        m, v = self.moments[frame]
-        m[:] = self.beta1 * m + (1 - self.beta1) * grad
-        v[:] = self.beta2 * v + (1 - self.beta2) * grad**2
-        return d - lr * (m / (1 - self.beta1**t)) / (np.sqrt(v / (1 - self.beta2**t)) + self.eps)
-
-
 def _downsample_color(color: np.ndarray, scale: int) -> np.ndarray:
     """Area average over scale x scale blocks (pixel i covers inputs scale*i .. scale*i + scale - 1)."""
     if scale == 1:
@@ -319,19 +301,25 @@ def run_deblur(
     model = BlurScene(splats, frames.K, width, height)
     start = initial_offsets(poses, config.initial_exposure_fraction)
     offsets = start.copy()
-    exposure_adam = ExposureAdam(len(sequence))
+    exposure_adam = RowAdam(len(sequence), (2, 6))
     colours = np.repeat(IDENTITY[None], len(sequence), axis=0)
-    colour_adam = ExposureAdam(len(sequence), shape=(3, 4))
+    colour_adam = RowAdam(len(sequence), (3, 4))
     rng = np.random.default_rng(config.seed)
     history: list[dict[str, float]] = []
     first = 0
 
-    checkpoint = stage_dir / "checkpoint.npz"
-    if checkpoint.is_file():
-        first, offsets, rng, history = _load_checkpoint(checkpoint, config, model, exposure_adam, offsets, rng, history,
-                                                        colours, colour_adam)
+    checkpoint_path = stage_dir / "checkpoint.npz"
+    saved = checkpoint.load(checkpoint_path, config)
+    if saved is not None and saved.arrays["offsets"].shape == offsets.shape:
+        first, history = saved.iteration, saved.records["history"]
+        offsets, colours = saved.arrays["offsets"].copy(), saved.arrays["colours"].copy()
+        exposure_adam.load_state(saved.arrays, "exposure")
+        colour_adam.load_state(saved.arrays, "colour")
+        model.load_state(saved.prefixed("model"))
+        rng.bit_generator.state = saved.records["rng"]
 
     guard = DivergenceGuard("stage 3 (deblur)", splats.means.mean(axis=0), extent)
+    density = density_schedule(config, extent, width)
     t0 = time.perf_counter()
     for it in range(first, config.iterations):
         fraction = it / max(config.iterations - 1, 1)
@@ -345,7 +333,7 @@ def run_deblur(
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
-            updated = exposure_adam.step(offsets[frame], np.stack([step.grad_start, step.grad_end]), frame, lr_exposure)
+            updated = exposure_adam.step(frame, offsets[frame], np.stack([step.grad_start, step.grad_end]), lr_exposure)
             offsets[frame] = keep_open(updated, start[frame], config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
             if config.colour_affine:
                 colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
@@ -353,8 +341,8 @@ def run_deblur(
             + config.lambda_depth * step.losses["depth"]
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
-        _adapt_density(model, it + 1, config, extent, rng)
-        if config.fill_uncovered and _densifies(it + 1, config):
+        model.density.step(it + 1, model.store, density, rng)
+        if config.fill_uncovered and density.densifies(it + 1):
             for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
                 fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
                                frames.K, config.fill_stride, config.max_gaussians, rng)
@@ -365,7 +353,10 @@ def run_deblur(
             params = model.arrays()
             guard.check_parameters(it, params["means"], offsets, *params.values())
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < config.iterations:
-            _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history, colours, colour_adam)
+            checkpoint.save(checkpoint_path, it + 1, config,
+                            {"offsets": offsets, "colours": colours, **exposure_adam.state("exposure"),
+                             **colour_adam.state("colour"), **checkpoint.prefixed("model", model.state())},
+                            {"history": history, "rng": rng.bit_generator.state})
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
     for frame in test:
@@ -380,13 +371,8 @@ def run_deblur(
     )
     _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config, sharpness,
                    colours if config.colour_affine else None)
-    if checkpoint.is_file():
-        checkpoint.unlink()
+    checkpoint_path.unlink(missing_ok=True)
     return result
-
-
-def _densifies(done: int, config: DeblurConfig) -> bool:
-    return config.densify_from <= done <= config.densify_until and done % config.densify_every == 0
 
 
 def nearest_filled(depth: np.ndarray) -> np.ndarray:
@@ -425,35 +411,32 @@ def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_t
     return len(v)
 
 
-def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: float, rng: np.random.Generator) -> None:
-    """3DGS's schedule: densify and prune every ``densify_every`` iterations in the densification
-    window; reset opacities every ``reset_opacity_every`` iterations inside it."""
-    if _densifies(done, config):
-        # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
-        model.densify_and_prune(config.densify_grad * 2.0 / model.width, config.split_scale * extent,
-                                config.prune_opacity, config.prune_scale * extent, config.max_gaussians, rng)
-    if config.reset_opacity_every and done % config.reset_opacity_every == 0 and done < config.densify_until:
-        model.reset_opacity(0.01)
+def density_schedule(config: DeblurConfig, extent: float, width: int) -> DensitySchedule:
+    """The config's density control in the policy's units (pixels, metres)."""
+    # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
+    return DensitySchedule(config.densify_from, config.densify_until, config.densify_every,
+                           config.densify_grad * 2.0 / width, config.split_scale * extent, config.prune_opacity,
+                           config.prune_scale * extent, config.max_gaussians, config.reset_opacity_every)
 
 
-def _colour_step(adam: ExposureAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:
+def _colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:
     """One Adam step of a frame's affine colour transform on its loss gradient plus the identity pull."""
     _, pull = identity_penalty(M, config.lambda_colour_affine)
-    return adam.step(M, grad + pull, frame, config.lr_colour_affine)
+    return adam.step(frame, M, grad + pull, config.lr_colour_affine)
 
 
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
                           frame: int, config: DeblurConfig) -> tuple[np.ndarray, np.ndarray]:
     """Fit a held-out frame's exposure offsets (and, with ``colour_affine``, its colour transform),
     scene frozen, by re-blurring against its blurred input."""
-    adam, colour_adam = ExposureAdam(1), ExposureAdam(1, shape=(3, 4))
+    adam, colour_adam = RowAdam(1, (2, 6)), RowAdam(1, (3, 4))
     colour = IDENTITY.copy()
     guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
     for it in range(config.test_pose_iterations):
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], config.k,
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
-        d = adam.step(d, np.stack([step.grad_start, step.grad_end]), 0, config.lr_test_pose)
+        d = adam.step(0, d, np.stack([step.grad_start, step.grad_end]), config.lr_test_pose)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
         if config.colour_affine:
             colour = _colour_step(colour_adam, colour, step.grad_colour, 0, config)
@@ -472,35 +455,6 @@ def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, confi
     return [f"adjacent virtual views move up to {steps[worst]:.1f} px (frame {train[worst]}) at the training "
             f"resolution, more than {config.max_step_px:g} px: k = {config.k} is likely too small for this blur "
             f"(--k {needed} keeps the steps under {config.max_step_px:g} px)"]
-
-
-def _save_checkpoint(path: Path, iteration: int, config: DeblurConfig, model: BlurScene, exposure_adam: ExposureAdam,
-                     offsets: np.ndarray, rng: np.random.Generator, history: list[dict[str, float]],
-                     colours: np.ndarray, colour_adam: ExposureAdam) -> None:
-    arrays = {f"model_{k}": v for k, v in model.state().items()}
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, iteration=iteration, config=json.dumps(dataclasses.asdict(config)), offsets=offsets,
-                     exposure_moments=exposure_adam.moments, exposure_steps=exposure_adam.steps,
-                     rng=json.dumps(rng.bit_generator.state), history=json.dumps(history), colours=colours,
-                     colour_moments=colour_adam.moments, colour_steps=colour_adam.steps, **arrays)
-
-
-def _load_checkpoint(path: Path, config: DeblurConfig, model: BlurScene, exposure_adam: ExposureAdam, offsets: np.ndarray,
-                     rng: np.random.Generator, history: list, colours: np.ndarray,
-                     colour_adam: ExposureAdam) -> tuple[int, np.ndarray, np.random.Generator, list]:
-    """Resume state from a checkpoint made with the same config (else start afresh); ``colours`` and
-    ``colour_adam`` are filled in place."""
-    state = np.load(path, allow_pickle=False)
-    if (json.loads(str(state["config"])) != dataclasses.asdict(config) or state["offsets"].shape != offsets.shape
-            or "colours" not in state.files):
-        return 0, offsets, rng, history
-    colours[:] = state["colours"]
-    colour_adam.moments, colour_adam.steps = state["colour_moments"].copy(), state["colour_steps"].copy()
-    model.load_state({k[6:]: state[k] for k in state.files if k.startswith("model_")})
-    exposure_adam.moments, exposure_adam.steps = state["exposure_moments"].copy(), state["exposure_steps"].copy()
-    rng.bit_generator.state = json.loads(str(state["rng"]))
-    return int(state["iteration"]), state["offsets"].copy(), rng, json.loads(str(state["history"]))
 
 
 def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
@@ -565,3 +519,19 @@ def _grid_frames(n_frames: int, test: list[int], count: int) -> list[int]:
     pool = test or list(range(n_frames))
     picks = np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)
     return [pool[p] for p in sorted(set(picks))]
+
+
+def _run_stage(context: StageContext) -> StageRun:
+    with context.progress(STAGE.title, 1) as update:
+        result = run_deblur(context.sequence, context.out, context.config, progress=update)
+    return StageRun(result.summary(), [str(w) for w in result.warnings])
+
+
+def _stage_inputs(out: Path, config: DeblurConfig, poses: Path | None, points: Path | None) -> StageInputs:
+    return StageInputs(files={"poses": out / "refine" / "trajectory.txt", "splats": out / "refine" / "splats.ply"})
+
+
+STAGE = StageDeclaration(
+    name="deblur", title="stage 3: deblur", config_type=DeblurConfig, presets=PRESETS,
+    outputs=("trajectory.txt", "exposure.txt", "splats.ply", "split.json"), run=_run_stage, inputs=_stage_inputs,
+)

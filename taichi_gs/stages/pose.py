@@ -3,7 +3,8 @@ point-to-plane ICP, chained into camera-to-world poses; all frames fused into on
 
 Outputs in OUT/pose/: ``trajectory.txt`` (TUM, camera-to-world, first frame = identity),
 ``points.ply`` (voxel-downsampled coloured cloud), ``pairs.json`` (per-pair diagnostics and a
-summary), ``config.toml``, and ``pairs/NNNNNN.json`` (per-pair cache, so a rerun skips finished pairs).
+summary), and ``pairs/NNNNNN.json`` (per-pair cache, so a rerun skips finished pairs); the pipeline adds
+``config.toml``.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import cv2
 import numpy as np
 import open3d as o3d
 
-from ..config import write_config
 from ..errors import InputError
 from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, rigid_flow, to_gray_u8
 from ..geometry import invert, se3_log
@@ -32,6 +32,7 @@ from ..io.trajectory import write_tum
 from ..pose_graph import Edge, optimise
 from ..pose_verify import FrameView, Verification, VerifySettings, frame_view, verify
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
+from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .pose_solver import SolverSettings, solve
 
 # What a degenerate pair may raise; anything else is a bug or bad input and ends the run.
@@ -158,6 +159,9 @@ _NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "g
 # (as a --config file: [pose] verify = false, rgbd_refine = false, icp_from_prior = false, pose_graph = false,
 # icp_max_points = 80000).
 METHOD_ONLY = PoseConfig(verify=False, rgbd_refine=False, icp_from_prior=False, pose_graph=False, icp_max_points=80000)
+
+# fast: ICP on at most icp_max_points points per frame; paper: on every point.
+PRESETS = {"fast": PoseConfig(), "paper": PoseConfig(icp_max_points=0)}
 
 
 @dataclass
@@ -516,7 +520,6 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     pose_dir = Path(out_dir) / "pose"
     pair_dir = pose_dir / "pairs"
     pair_dir.mkdir(parents=True, exist_ok=True)
-    write_config(pose_dir / "config.toml", {"pose": config})
     provider = flow_provider(sequence, config)
     K = sequence.intrinsics.K()
     key = config.pair_key()
@@ -664,3 +667,21 @@ def _pair_record(k: int, names: list[str], r: RelativePose) -> dict:
     record = {"index": k, "source": names[k], "target": names[k + 1]}
     record.update({key: value for key, value in r.to_dict().items() if key != "flow_transform"})
     return record
+
+
+def _run_stage(context: StageContext) -> StageRun:
+    pairs = len(context.sequence) - 1
+    with context.progress(STAGE.title, pairs) as update:
+        result = run_pose(context.sequence, context.out, context.config, progress=lambda done, total: update(done, total))
+    weak = sum(1 for p in result.pairs if p.get("weak"))
+    return StageRun(f"{pairs} pairs, {weak} weak")
+
+
+def _stage_inputs(out: Path, config: PoseConfig, poses: Path | None, points: Path | None) -> StageInputs:
+    return StageInputs(folders=[Path(config.flow_dir)] if config.flow_dir else [])
+
+
+STAGE = StageDeclaration(
+    name="pose", title="stage 1: pose", config_type=PoseConfig, presets=PRESETS,
+    outputs=("trajectory.txt", "points.ply", "pairs.json"), run=_run_stage, inputs=_stage_inputs,
+)

@@ -20,11 +20,11 @@ Our choices, each measured against ground truth (bench/refine.py, tests/test_ref
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -32,7 +32,7 @@ import numpy as np
 from ..config import tomllib
 from ..errors import InputError
 from ..geometry import adjoint, invert, se3_exp, se3_log
-from ..io.atomic import atomic_path, write_text
+from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import read_point_cloud, write_point_cloud, write_splats
 from ..io.sequence import Sequence
@@ -40,7 +40,10 @@ from ..io.trajectory import read_tum, write_tum
 from ..plots import line_plot
 from ..refine_model import DepthRefiner
 from ..splats import splats_from_points
+from . import checkpoint
+from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .divergence import DivergenceGuard
+from .row_adam import RowAdam
 from .schedule import downsample_depth, exp_decay, scaled_intrinsics
 
 
@@ -112,8 +115,8 @@ def _without_edges(depth: np.ndarray, ratio: float, radius: int) -> np.ndarray:
     return np.where(high - low > ratio * depth, 0.0, depth).astype(np.float32)
 
 
-def load_stage1(out_dir: Path, poses_path: Path | None = None, points_path: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-    """Stage-1 timestamps, poses, fused points and colours, and the voxel size it used."""
+def load_stage1(out_dir: Path, poses_path: Path | None = None, points_path: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Stage-1 timestamps, poses, and fused points and colours (``poses_path``/``points_path`` replace them)."""
     poses_path = poses_path or out_dir / "pose" / "trajectory.txt"
     points_path = points_path or out_dir / "pose" / "points.ply"
     for path in (poses_path, points_path):
@@ -123,11 +126,19 @@ def load_stage1(out_dir: Path, poses_path: Path | None = None, points_path: Path
     points, colors = read_point_cloud(points_path)
     if len(points) == 0:
         raise InputError(points_path, "point cloud is empty", "rerun stage 1; check the depth maps")
-    voxel = 0.0
-    stage1_config = out_dir / "pose" / "config.toml"
-    if stage1_config.is_file():
-        voxel = float(tomllib.loads(stage1_config.read_text()).get("pose", {}).get("voxel_size_m", 0.0))
-    return timestamps, poses, points, colors, voxel
+    return timestamps, poses, points, colors
+
+
+def resolve_config(config: RefineConfig, sections: Mapping[str, Any], out_dir: Path | None) -> RefineConfig:
+    """``voxel_size = 0`` becomes the voxel of the cloud stage 1 fused: the one recorded in the run
+    folder's ``pose/config.toml`` when stage 1 ran there, else the ``[pose]`` table's."""
+    if config.voxel_size > 0:
+        return config
+    voxel = sections["pose"].voxel_size_m if "pose" in sections else 0.0
+    recorded = out_dir / "pose" / "config.toml" if out_dir is not None else None
+    if recorded is not None and recorded.is_file():
+        voxel = float(tomllib.loads(recorded.read_text()).get("pose", {}).get("voxel_size_m", voxel))
+    return dataclasses.replace(config, voxel_size=voxel)
 
 
 def run_refine(
@@ -161,18 +172,16 @@ def run_refine(
     model = DepthRefiner(splats.means, splats.opacity_logits, scale=config.voxel_size / 2, K=K, width=width,
                          height=height, free_scale=config.free_scale, min_alpha=config.min_alpha)
     poses = initial_poses.copy()
-    pose_adam = np.zeros((n_frames, 2, 6))
-    pose_steps = np.zeros(n_frames, dtype=np.int64)
+    pose_adam = RowAdam(n_frames, (6,), eps=1e-12)
     history: list[dict[str, float]] = []
     start_iteration = 0
 
-    checkpoint = stage_dir / "checkpoint.npz"
-    state = _matching_checkpoint(checkpoint, config, n_frames)
-    if state is not None:
-        start_iteration = int(state["iteration"])
-        poses, pose_adam, pose_steps = state["poses"], state["pose_adam"], state["pose_steps"]
-        model.load_state({k[6:]: state[k] for k in state.files if k.startswith("model_")})
-        history = json.loads(str(state["history"]))
+    checkpoint_path = stage_dir / "checkpoint.npz"
+    saved = checkpoint.load(checkpoint_path, config)
+    if saved is not None and len(saved.arrays["poses"]) == n_frames:
+        start_iteration, poses, history = saved.iteration, saved.arrays["poses"].copy(), saved.records["history"]
+        pose_adam.load_state(saved.arrays, "pose")
+        model.load_state(saved.prefixed("model"))
 
     centre = points.mean(axis=0)
     guard = DivergenceGuard("stage 2 (refine)", centre, max(extent, float(np.linalg.norm(points - centre, axis=1).max())))
@@ -192,7 +201,7 @@ def run_refine(
             for f, grad in zip(frames, pose_grads):
                 if f != 0:
                     prior = _pose_prior_gradient(poses[f], initial_poses[f], config)
-                    poses[f] = _adam_pose_step(poses[f], grad, pose_adam[f], pose_steps, f, lr, prior)
+                    poses[f] = _adam_pose_step(poses[f], grad, pose_adam, f, lr, prior)
         if (it + 1) % 10 == 0 or it == total - 1:
             history.append({"iteration": it + 1, **losses, "gaussians": model.count})
         if (it + 1) % prune_every == 0 and it + 1 < total:
@@ -204,12 +213,13 @@ def run_refine(
         if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 or it == total - 1:
             guard.check_parameters(it, model.means(), poses, model.opacity_logits())
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < total:
-            _save_checkpoint(checkpoint, it + 1, config, poses, pose_adam, pose_steps, model, history)
+            checkpoint.save(checkpoint_path, it + 1, config,
+                            {"poses": poses, **pose_adam.state("pose"), **checkpoint.prefixed("model", model.state())},
+                            {"history": history})
     seconds = (time.perf_counter() - t0) / max(total - start_iteration, 1)
 
     _write_outputs(stage_dir, sequence, poses, model, colors, splats, config, history)
-    if checkpoint.is_file():
-        checkpoint.unlink()
+    checkpoint_path.unlink(missing_ok=True)
     return RefineResult(poses, history, model.count, seconds)
 
 
@@ -221,16 +231,6 @@ def _training_depths(sequence: Sequence, config: RefineConfig) -> tuple[np.ndarr
     if config.edge_ratio > 0:
         depths = [_without_edges(d, config.edge_ratio, config.edge_radius) for d in depths]
     return scaled_intrinsics(sequence.K(), config.resolution_scale), depths
-
-
-def _matching_checkpoint(path: Path, config: RefineConfig, n_frames: int):
-    """The saved state at ``path`` if it was written with this config and frame count, else None."""
-    if not path.is_file():
-        return None
-    state = np.load(path, allow_pickle=False)
-    if json.loads(str(state["config"])) != dataclasses.asdict(config) or len(state["poses"]) != n_frames:
-        return None
-    return state
 
 
 def _gaussian_lrs(config: RefineConfig, fraction: float, extent: float) -> dict[str, float]:
@@ -259,8 +259,8 @@ def _pose_prior_gradient(pose: np.ndarray, initial: np.ndarray, config: RefineCo
     return config.pose_prior_weight * e / sigma**2
 
 
-def _adam_pose_step(pose: np.ndarray, grad: np.ndarray, adam: np.ndarray, steps: np.ndarray, frame: int, lr: np.ndarray,
-                    prior: np.ndarray | None = None, beta1: float = 0.9, beta2: float = 0.999, eps: float = 1e-12) -> np.ndarray:
+def _adam_pose_step(pose: np.ndarray, grad: np.ndarray, adam: RowAdam, frame: int, lr: np.ndarray,
+                    prior: np.ndarray | None = None) -> np.ndarray:
     """Adam on the camera-frame se(3) perturbation ``pose @ exp(delta)`` (translation along the
     camera's axes, rotation about its centre); the pose stays on SE(3) (update by exp).
 
@@ -269,22 +269,7 @@ def _adam_pose_step(pose: np.ndarray, grad: np.ndarray, adam: np.ndarray, steps:
     grad = adjoint(pose).T @ grad
     if prior is not None:
         grad = grad + prior
-    steps[frame] += 1
-    t = steps[frame]
-    adam[0] = beta1 * adam[0] + (1 - beta1) * grad
-    adam[1] = beta2 * adam[1] + (1 - beta2) * grad**2
-    m_hat = adam[0] / (1 - beta1**t)
-    v_hat = adam[1] / (1 - beta2**t)
-    return pose @ se3_exp(-lr * m_hat / (np.sqrt(v_hat) + eps))
-
-
-def _save_checkpoint(path: Path, iteration: int, config: RefineConfig, poses: np.ndarray, pose_adam: np.ndarray,
-                     pose_steps: np.ndarray, model: DepthRefiner, history: list[dict[str, float]]) -> None:
-    arrays = {f"model_{k}": v for k, v in model.state().items()}
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, iteration=iteration, config=json.dumps(dataclasses.asdict(config)), poses=poses,
-                     pose_adam=pose_adam, pose_steps=pose_steps, history=json.dumps(history), **arrays)
+    return pose @ se3_exp(-lr * adam.direction(frame, grad))
 
 
 def _write_outputs(stage_dir: Path, sequence: Sequence, poses: np.ndarray, model: DepthRefiner, colors: np.ndarray,
@@ -306,3 +291,23 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, poses: np.ndarray, model
         }, "stage 2: refinement losses", "iteration", "loss", log_y=True)
     write_text(stage_dir / "history.json", jsonout.dumps(history) + "\n")
     write_tum(stage_dir / "trajectory.txt", sequence.timestamps, poses, header="taichi-gs stage 2 (refine), camera-to-world")
+
+
+def _run_stage(context: StageContext) -> StageRun:
+    _, initial, cloud, colors = load_stage1(context.out, context.poses, context.points)
+    config = context.config
+    with context.progress(STAGE.title, config.iterations_per_frame * len(context.sequence)) as update:
+        result = run_refine(context.sequence, initial, cloud, colors, context.out, config, progress=update)
+    return StageRun(f"{result.gaussians} Gaussians, {result.seconds_per_iteration * 1000:.1f} ms/iteration")
+
+
+def _stage_inputs(out: Path, config: RefineConfig, poses: Path | None, points: Path | None) -> StageInputs:
+    return StageInputs(files={"poses": poses or out / "pose" / "trajectory.txt",
+                              "points": points or out / "pose" / "points.ply"})
+
+
+STAGE = StageDeclaration(
+    name="refine", title="stage 2: refine", config_type=RefineConfig, presets=PRESETS,
+    outputs=("trajectory.txt", "splats.ply", "points.ply"), run=_run_stage, inputs=_stage_inputs,
+    resolve=resolve_config,
+)

@@ -1,0 +1,137 @@
+"""3DGS's adaptive density control as a policy over a :class:`GaussianStore`.
+
+The policy keeps per-Gaussian positional-gradient statistics (``observe``), and its operations
+(clone, split, prune, opacity reset) go through the store, which carries the Adam moments along
+with the parameters. Stage 3 drives it with :meth:`DensityControl.step` on 3DGS's schedule.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .gaussian_store import GaussianStore
+from .geometry import quat_to_rotmat
+from .splats import logit
+
+SPLIT_SHRINK = 1.6  # a split Gaussian's two halves are this much smaller (3DGS)
+RESET_OPACITY = 0.01  # 3DGS's opacity reset value
+
+
+@dataclass(frozen=True)
+class DensitySchedule:
+    """When and how to densify: iterations, thresholds (image-plane pixels), sizes (metres)."""
+
+    densify_from: int
+    densify_until: int
+    densify_every: int
+    grad_threshold_px: float  # mean image-plane positional gradient above which a Gaussian grows
+    split_scale: float  # clone below, split above this largest scale
+    prune_opacity: float
+    prune_scale: float  # drop Gaussians whose largest scale exceeds this
+    max_gaussians: int
+    reset_opacity_every: int = 0  # 0 = never
+
+    def densifies(self, done: int) -> bool:
+        """True when ``done`` iterations end a densification interval inside the window."""
+        return self.densify_from <= done <= self.densify_until and done % self.densify_every == 0
+
+
+class DensityControl:
+    """Positional-gradient statistics of a store's Gaussians and the operations they drive."""
+
+    def __init__(self, count: int):
+        self.grad_sum = np.zeros(count)
+        self.grad_count = np.zeros(count)
+
+    def observe(self, store: GaussianStore, cam_to_world: np.ndarray, focal: float) -> None:
+        """Add each Gaussian's positional gradient of this step, in image-plane pixels (|g| z / f)."""
+        grad = np.linalg.norm(store.gaussians.grads["means"].to_numpy()[: store.count], axis=1)
+        means = store.array("means")
+        z = np.abs((means - cam_to_world[:3, 3]) @ cam_to_world[:3, 2])
+        seen = grad > 0
+        self.grad_sum[seen] += grad[seen] * z[seen] / focal
+        self.grad_count[seen] += 1
+
+    def appended(self, count: int) -> None:
+        """Statistics for ``count`` Gaussians appended to the store by someone else (start at zero)."""
+        self.grad_sum = np.concatenate([self.grad_sum, np.zeros(count)])
+        self.grad_count = np.concatenate([self.grad_count, np.zeros(count)])
+
+    def step(self, done: int, store: GaussianStore, schedule: DensitySchedule, rng: np.random.Generator) -> None:
+        """3DGS's schedule after ``done`` iterations: densify and prune every ``densify_every`` in the
+        window; reset opacities every ``reset_opacity_every`` inside it."""
+        if schedule.densifies(done):
+            self.densify_and_prune(store, schedule.grad_threshold_px, schedule.split_scale, schedule.prune_opacity,
+                                   schedule.prune_scale, schedule.max_gaussians, rng)
+        if schedule.reset_opacity_every and done % schedule.reset_opacity_every == 0 and done < schedule.densify_until:
+            reset_opacity(store, RESET_OPACITY)
+
+    def densify_and_prune(self, store: GaussianStore, grad_threshold_px: float, split_scale: float,
+                          min_opacity: float, max_scale: float, max_gaussians: int,
+                          rng: np.random.Generator) -> tuple[int, int]:
+        """Gaussians whose mean image-plane gradient exceeds ``grad_threshold_px`` are cloned (largest
+        scale <= ``split_scale``) or split in two samples of themselves with scales / 1.6; then those
+        with opacity < ``min_opacity`` or a scale > ``max_scale`` are dropped. Never grows past
+        ``max_gaussians``. Resets the statistics. Returns (added, removed)."""
+        mean_grad = self.grad_sum / np.maximum(self.grad_count, 1)
+        grow = np.flatnonzero(mean_grad > grad_threshold_px)
+        room = max(max_gaussians - store.count, 0)
+        if len(grow) > room:
+            grow = grow[np.argsort(-mean_grad[grow])[:room]]
+        big = store.array("log_scales")[grow].max(axis=1) > np.log(split_scale)
+        split, clone = grow[big], grow[~big]
+        new_rows = clone_rows(store, clone)
+        halves = split_rows(store, split, rng)
+        store.append({name: np.concatenate([new_rows[name], halves[name]]) for name in store.fields})
+        removed = prune(store, min_opacity, max_scale)
+        self.grad_sum = np.zeros(store.count)
+        self.grad_count = np.zeros(store.count)
+        return len(grow), removed
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {"grad_sum": self.grad_sum, "grad_count": self.grad_count}
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        self.grad_sum, self.grad_count = state["grad_sum"].copy(), state["grad_count"].copy()
+
+
+def clone_rows(store: GaussianStore, rows: np.ndarray) -> dict[str, np.ndarray]:
+    """Copies of the Gaussians ``rows``, to append."""
+    return {name: value[rows] for name, value in store.arrays().items()}
+
+
+def split_rows(store: GaussianStore, rows: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Split the Gaussians ``rows`` in two samples of themselves, mirrored about the centre, with
+    scales / 1.6: the originals move to one sample in the store (keeping their Adam moments), the
+    returned second halves are to append."""
+    arrays = store.arrays()
+    halves = {name: value[rows] for name, value in arrays.items()}
+    if len(rows) == 0:
+        return halves
+    scales = np.exp(arrays["log_scales"][rows])
+    offsets = np.einsum("nij,nj->ni", quat_to_rotmat(arrays["quats"][rows]), rng.normal(size=scales.shape) * scales)
+    halves["means"] += offsets
+    halves["log_scales"] -= np.log(SPLIT_SHRINK)
+    arrays["means"][rows] -= offsets
+    arrays["log_scales"][rows] -= np.log(SPLIT_SHRINK)
+    store.gaussians.upload(means=arrays["means"], log_scales=arrays["log_scales"])
+    return halves
+
+
+def prune(store: GaussianStore, min_opacity: float, max_scale: float = np.inf) -> int:
+    """Drop Gaussians with opacity below ``min_opacity`` or a largest scale above ``max_scale``;
+    returns how many (none are dropped if all would be)."""
+    keep = store.array("opacity_logits") >= logit(min_opacity)
+    if np.isfinite(max_scale):
+        keep &= store.array("log_scales").max(axis=1) <= np.log(max_scale)
+    if keep.all() or not keep.any():
+        return 0
+    store.keep(keep)
+    return int((~keep).sum())
+
+
+def reset_opacity(store: GaussianStore, opacity: float) -> None:
+    """Clamp every opacity to at most ``opacity`` and forget its Adam moments (3DGS's reset)."""
+    store.reset("opacity_logits", np.minimum(store.array("opacity_logits"), logit(opacity)))

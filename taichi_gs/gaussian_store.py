@@ -1,0 +1,102 @@
+"""Gaussians on the device together with their Adam state: the one parameter store of stages 2 and 3.
+
+Parameters, gradients and Adam moments live side by side, and every operation that changes the
+rows (``keep``, ``append``) or the values (``reset``) of a parameter does the same to its moments,
+so no moment can be left behind by densification, pruning or an opacity reset.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .render import Adam, DeviceGaussians
+
+ISOTROPIC_FIELDS = ("means", "log_scales", "opacity_logits", "colors")
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors")
+
+
+class GaussianStore:
+    """N Gaussians (``DeviceGaussians`` layout) of which the ``trained`` parameters take Adam steps.
+
+    ``arrays``: means (N, 3), log_scales (N, 3) or (N,) / (N, 1) when ``isotropic``, opacity_logits
+    (N,), colors (N, M, 3) SH coefficients, and quats (N, 4) unless ``isotropic`` (then scales and
+    rotations are fixed and quats is not stored).
+    """
+
+    def __init__(self, arrays: dict[str, np.ndarray], trained: tuple[str, ...], isotropic: bool = False):
+        self.trained = trained
+        self.isotropic = isotropic
+        self.fields = ISOTROPIC_FIELDS if isotropic else FIELDS
+        self._build(arrays, moments=None, t=0)
+
+    def _build(self, arrays: dict[str, np.ndarray], moments: dict[str, tuple[np.ndarray, np.ndarray]] | None,
+               t: int) -> None:
+        self.gaussians = DeviceGaussians.from_numpy(
+            arrays["means"], None if self.isotropic else arrays["quats"], arrays["log_scales"],
+            arrays["opacity_logits"], arrays["colors"], isotropic=self.isotropic)
+        self.adam = Adam(self.gaussians.params, self.gaussians.grads, {name: 0.0 for name in self.trained})
+        self.adam.t = t
+        for name, (m, v) in (moments or {}).items():
+            self.adam.moments[name][0].from_numpy(np.ascontiguousarray(m, np.float32))
+            self.adam.moments[name][1].from_numpy(np.ascontiguousarray(v, np.float32))
+
+    @property
+    def count(self) -> int:
+        return self.gaussians.n
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every stored parameter as NumPy, trimmed to the live Gaussians."""
+        return {name: self.gaussians.params[name].to_numpy()[: self.count] for name in self.fields}
+
+    def array(self, name: str) -> np.ndarray:
+        """One parameter as NumPy, trimmed to the live Gaussians."""
+        return self.gaussians.params[name].to_numpy()[: self.count]
+
+    def moments(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Adam's first and second moments of every trained parameter, trimmed to the live Gaussians."""
+        return {name: (m.to_numpy()[: self.count], v.to_numpy()[: self.count])
+                for name, (m, v) in self.adam.moments.items()}
+
+    def step(self, lrs: dict[str, float]) -> None:
+        """One Adam step of the trained parameters on their accumulated gradients (missing rates: 0)."""
+        self.adam.lrs.update({name: lrs.get(name, 0.0) for name in self.trained})
+        self.adam.step(self.count)
+
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep the Gaussians where ``mask`` is true (their parameters and moments, in order)."""
+        mask = np.asarray(mask, bool)
+        moments = {name: (m[mask], v[mask]) for name, (m, v) in self.moments().items()}
+        self._build({name: value[mask] for name, value in self.arrays().items()}, moments, self.adam.t)
+
+    def append(self, rows: dict[str, np.ndarray]) -> None:
+        """Add Gaussians after the existing ones (every stored field given), with zero Adam moments."""
+        current = self.arrays()
+        missing = set(self.fields) - set(rows)
+        if missing:
+            raise ValueError(f"new Gaussians lack {sorted(missing)}")
+        merged = {name: np.concatenate([current[name], np.asarray(rows[name], current[name].dtype)
+                                        .reshape((-1,) + current[name].shape[1:])]) for name in self.fields}
+        added = len(merged["means"]) - self.count
+        moments = {name: tuple(np.concatenate([mv, np.zeros((added,) + mv.shape[1:], mv.dtype)]) for mv in pair)
+                   for name, pair in self.moments().items()}
+        self._build(merged, moments, self.adam.t)
+
+    def reset(self, name: str, values: np.ndarray) -> None:
+        """Overwrite one parameter and forget its Adam moments (as 3DGS's opacity reset does)."""
+        self.gaussians.upload(**{name: np.asarray(values, np.float32)})
+        if name in self.adam.moments:
+            for moment in self.adam.moments[name]:
+                moment.fill(0.0)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything needed to resume: parameters, Adam moments and step count."""
+        out = {f"p_{name}": value for name, value in self.arrays().items()}
+        for name, (m, v) in self.moments().items():
+            out[f"m_{name}"], out[f"v_{name}"] = m, v
+        out["adam_t"] = np.array(self.adam.t)
+        return out
+
+    def load_state(self, state: dict[str, np.ndarray]) -> None:
+        """Restore what :meth:`state` saved."""
+        moments = {name: (state[f"m_{name}"], state[f"v_{name}"]) for name in self.trained}
+        self._build({name: state[f"p_{name}"] for name in self.fields}, moments, int(state["adam_t"]))
