@@ -50,5 +50,7 @@ def test_checkpoint_round_trip_and_config_match(tmp_path):
     assert saved.records == {"history": [{"iteration": 10, "depth": 0.5}], "rng": {"state": 7}}
     assert checkpoint.load(path, dataclasses.replace(config, seed=config.seed + 1)) is None  # another run's
     assert checkpoint.load(tmp_path / "none.npz", config) is None
+    np.savez(tmp_path / "old.npz", iteration=40, config=np.array("{}"))  # an earlier layout: not resumed
+    assert checkpoint.load(tmp_path / "old.npz", config) is None
     with pytest.raises(ValueError, match="reserved"):
         checkpoint.save(path, 1, config, {"iteration": np.zeros(1)}, {})

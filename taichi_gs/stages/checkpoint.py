@@ -1,7 +1,8 @@
 """Training checkpoints of stages 2 and 3: one ``.npz`` holding the iteration, the config it was
 made with, numeric state (model, optimisers, per-frame parameters) and JSON records (history, RNG).
 
-A checkpoint resumes a run only when it was made with the same config; anything else starts afresh.
+A checkpoint resumes a run only when it was made with the same config and layout (``FORMAT``);
+anything else starts afresh.
 It is written atomically, so a run killed while saving keeps the previous one.
 """
 
@@ -17,7 +18,8 @@ import numpy as np
 
 from ..io.atomic import atomic_path
 
-_RESERVED = ("iteration", "config")
+FORMAT = 2  # the layout of the arrays; bump when a model's state() changes its keys
+_RESERVED = ("format", "iteration", "config")
 _RECORD = "record_"
 
 
@@ -47,14 +49,16 @@ def save(path: Path, iteration: int, config: Any, arrays: dict[str, np.ndarray],
     encoded = {_RECORD + k: json.dumps(v) for k, v in records.items()}
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.savez(f, iteration=iteration, config=json.dumps(dataclasses.asdict(config)), **arrays, **encoded)
+            np.savez(f, format=FORMAT, iteration=iteration, config=json.dumps(dataclasses.asdict(config)), **arrays, **encoded)
 
 
 def load(path: Path, config: Any) -> Checkpoint | None:
-    """The checkpoint at ``path`` if there is one made with ``config``, else None."""
+    """The checkpoint at ``path`` if there is one made with ``config`` in this layout, else None."""
     if not path.is_file():
         return None
     with np.load(path, allow_pickle=False) as state:
+        if "format" not in state.files or int(state["format"]) != FORMAT:
+            return None
         if json.loads(str(state["config"])) != json.loads(json.dumps(dataclasses.asdict(config))):
             return None
         arrays = {k: state[k] for k in state.files if k not in _RESERVED and not k.startswith(_RECORD)}
