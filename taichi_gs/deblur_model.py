@@ -50,13 +50,14 @@ def exposure_taus(k: int) -> np.ndarray:
 class BlurScene:
     """Gaussians rendered at one resolution (``K`` in OpenCV convention; the rasterizer's half-pixel
     shift is applied here). :meth:`step` takes one blurred frame's k-view loss and updates the
-    Gaussians (``store``); ``density`` observes the steps and grows and trims them."""
+    Gaussians (``store``); ``density`` observes the steps and grows and trims them. ``precision``
+    "f64" (CPU/CUDA only) serves the finite-difference tests."""
 
-    def __init__(self, splats: Splats, K: np.ndarray, width: int, height: int):
+    def __init__(self, splats: Splats, K: np.ndarray, width: int, height: int, precision: str = "f32"):
         self.K = raster_intrinsics(K)
         self.width, self.height = width, height
-        self.rasterizer = Rasterizer()
-        self.store = GaussianStore(_as_arrays(splats), TRAINED)
+        self.store = GaussianStore(_as_arrays(splats), TRAINED, precision=precision)
+        self.rasterizer = Rasterizer(self.store.dtype)
         self.density = DensityControl(self.count)
         dtype = self.gaussians.dtype
         self.frame = to_device(np.zeros((height, width, 3), np.float32), dtype)

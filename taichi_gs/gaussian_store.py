@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .render import Adam, DeviceGaussians
+from .render import Adam, DeviceGaussians, float_type, np_dtype
 
 ISOTROPIC_FIELDS = ("means", "log_scales", "opacity_logits", "colors")
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors")
@@ -20,12 +20,14 @@ class GaussianStore:
 
     ``arrays``: means (N, 3), log_scales (N, 3) or (N,) / (N, 1) when ``isotropic``, opacity_logits
     (N,), colors (N, M, 3) SH coefficients, and quats (N, 4) unless ``isotropic`` (then scales and
-    rotations are fixed and quats is not stored).
+    rotations are fixed and quats is not stored). ``precision``: "f32", or "f64" (CPU/CUDA) for tests.
     """
 
-    def __init__(self, arrays: dict[str, np.ndarray], trained: tuple[str, ...], isotropic: bool = False):
+    def __init__(self, arrays: dict[str, np.ndarray], trained: tuple[str, ...], isotropic: bool = False,
+                 precision: str = "f32"):
         self.trained = trained
         self.isotropic = isotropic
+        self.dtype = float_type(precision)
         self.fields = ISOTROPIC_FIELDS if isotropic else FIELDS
         self._build(arrays, moments=None, t=0)
 
@@ -33,12 +35,12 @@ class GaussianStore:
                t: int) -> None:
         self.gaussians = DeviceGaussians.from_numpy(
             arrays["means"], None if self.isotropic else arrays["quats"], arrays["log_scales"],
-            arrays["opacity_logits"], arrays["colors"], isotropic=self.isotropic)
+            arrays["opacity_logits"], arrays["colors"], isotropic=self.isotropic, dtype=self.dtype)
         self.adam = Adam(self.gaussians.params, self.gaussians.grads, {name: 0.0 for name in self.trained})
         self.adam.t = t
         for name, (m, v) in (moments or {}).items():
-            self.adam.moments[name][0].from_numpy(np.ascontiguousarray(m, np.float32))
-            self.adam.moments[name][1].from_numpy(np.ascontiguousarray(v, np.float32))
+            self.adam.moments[name][0].from_numpy(np.ascontiguousarray(m, np_dtype(self.dtype)))
+            self.adam.moments[name][1].from_numpy(np.ascontiguousarray(v, np_dtype(self.dtype)))
 
     @property
     def count(self) -> int:
@@ -83,7 +85,7 @@ class GaussianStore:
 
     def reset(self, name: str, values: np.ndarray) -> None:
         """Overwrite one parameter and forget its Adam moments (as 3DGS's opacity reset does)."""
-        self.gaussians.upload(**{name: np.asarray(values, np.float32)})
+        self.gaussians.upload(**{name: np.asarray(values)})
         if name in self.adam.moments:
             for moment in self.adam.moments[name]:
                 moment.fill(0.0)

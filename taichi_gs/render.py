@@ -60,7 +60,7 @@ import numpy as np
 from .geometry import raster_intrinsics
 from .kernels import blur, losses, runtime
 from .kernels.optim import Adam
-from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, to_device
+from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, np_dtype, to_device
 from .splats import Splats
 
 __all__ = [

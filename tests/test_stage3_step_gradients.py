@@ -6,19 +6,14 @@ masked depth L1, the k-view mean), and BlurScene's own float32 gradients against
 
 from __future__ import annotations
 
-import functools
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 import taichi as ti
 
-from taichi_gs import deblur_model
 from taichi_gs.deblur_model import BlurScene, exposure_taus
-from taichi_gs.geometry import raster_intrinsics, se3_exp
+from taichi_gs.geometry import raster_intrinsics, se3_exp, virtual_pose
 from taichi_gs.kernels import runtime
-from taichi_gs.geometry import virtual_pose
-from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
+from taichi_gs.render import Camera, Rasterizer
 from taichi_gs.splats import Splats
 
 WIDTH, HEIGHT = 40, 32
@@ -90,12 +85,9 @@ def _targets(seed: int) -> tuple[np.ndarray, np.ndarray]:
     return frame.astype(np.float32), np.maximum(depth, 0.0).astype(np.float32)
 
 
-def _f64_blur_scene(monkeypatch, splats: Splats) -> BlurScene:
-    """BlurScene itself, with its Gaussians and rasterizer in float64 (its code path unchanged)."""
-    monkeypatch.setattr(deblur_model, "DeviceGaussians",
-                        SimpleNamespace(from_numpy=functools.partial(DeviceGaussians.from_numpy, dtype=ti.f64)))
-    monkeypatch.setattr(deblur_model, "Rasterizer", lambda: Rasterizer(ti.f64))
-    model = BlurScene(splats, K, WIDTH, HEIGHT)
+def _f64_blur_scene(splats: Splats) -> BlurScene:
+    """BlurScene itself, with its Gaussians and rasterizer in float64."""
+    model = BlurScene(splats, K, WIDTH, HEIGHT, precision="f64")
     assert model.gaussians.dtype == ti.f64
     return model
 
@@ -121,15 +113,15 @@ def problem():
     return _scene(4), frame, depth
 
 
-def _f64_step(monkeypatch, splats, frame, depth):
-    model = _f64_blur_scene(monkeypatch, splats)
+def _f64_step(splats, frame, depth):
+    model = _f64_blur_scene(splats)
     step = model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, LAMBDA_DSSIM, LAMBDA_DEPTH, rates=None)
     return model, step, model.gaussians.download(grads=True)
 
 
-def test_stage3_step_gradients_match_finite_differences(monkeypatch, problem):
+def test_stage3_step_gradients_match_finite_differences(problem):
     splats, frame, depth = problem
-    model, step, grads = _f64_step(monkeypatch, splats, frame, depth)
+    model, step, grads = _f64_step(splats, frame, depth)
     params = model.arrays()
     frame64, depth64 = frame.astype(np.float64), depth.astype(np.float64)
 
@@ -183,14 +175,14 @@ def test_stage3_step_gradients_match_finite_differences(monkeypatch, problem):
     assert max(errors.values()) < 1e-4, errors
 
 
-def test_float32_step_agrees_with_float64(monkeypatch, problem):
+def test_float32_step_agrees_with_float64(problem):
     """The production (float32) BlurScene.step gives the float64 gradients to float32 accuracy."""
     splats, frame, depth = problem
     model32 = BlurScene(splats, K, WIDTH, HEIGHT)
     assert model32.gaussians.dtype == ti.f32
     step32 = model32.step(frame, depth, BASE, D_START, D_END, K_VIEWS, LAMBDA_DSSIM, LAMBDA_DEPTH, rates=None)
     grads32 = model32.gaussians.download(grads=True)
-    _, step64, grads64 = _f64_step(monkeypatch, splats, frame, depth)
+    _, step64, grads64 = _f64_step(splats, frame, depth)
     for name in ("l1", "dssim", "depth"):
         assert step32.losses[name] == pytest.approx(step64.losses[name], rel=1e-4, abs=1e-6), name
     pairs = {name: (grads32[name], grads64[name]) for name in grads64}
