@@ -11,10 +11,9 @@ import pytest
 
 from taichi_gs.errors import InputError
 from taichi_gs.evaluate import psnr, ssim
-from taichi_gs.geometry import backproject, invert, project, se3_exp, transform
+from taichi_gs.geometry import backproject, invert, project, se3_exp, se3_log, transform, virtual_pose
 from taichi_gs.io.ply import read_splats
 from taichi_gs.io.trajectory import read_tum, read_tum_rows, tum_rows_to_poses
-from taichi_gs.geometry import virtual_pose
 from taichi_gs.stages.deblur import (
     PRESETS, exposure_px, initial_offsets, keep_open, load_stage2, run_deblur, split_frames,
 )
@@ -87,8 +86,14 @@ def test_extreme_blur_held_out_views_get_sharper_and_exposures_approach_truth(tm
     for i in result.test:
         ours = _read_rgb(stage / "renders" / "sharp" / f"{sequence.names[i]}.png")
         sharp, blurred = sequence.sharp(i), sequence.color(i)
-        assert psnr(ours, sharp) > psnr(blurred, sharp)
-        assert ssim(ours, sharp) > ssim(blurred, sharp)
+        # a real gain, not any: measured +0.73 to +0.95 dB and +0.12 to +0.13 SSIM on these views
+        assert psnr(ours, sharp) > psnr(blurred, sharp) + 0.4
+        assert ssim(ours, sharp) > ssim(blurred, sharp) + 0.05
+
+    for i in result.train:  # the exposures open to a size like the truth's (measured 0.45-0.75 of it)
+        learned = np.linalg.norm(se3_log(invert(result.exposure[i, 0]) @ result.exposure[i, 1])[:3])
+        true = np.linalg.norm(se3_log(invert(sequence.exposure_poses[i, 0]) @ sequence.exposure_poses[i, 1])[:3])
+        assert 0.3 * true < learned < 1.5 * true, (i, learned, true)
 
     initial = initial_offsets(sequence.gt_poses, config.initial_exposure_fraction)
     before = [[virtual_pose(sequence.gt_poses[i], *initial[i], tau) for tau in (0.0, 1.0)] for i in range(len(sequence))]

@@ -55,7 +55,8 @@ def test_refinement_undoes_a_known_perturbation(scene, tmp_path):
     splats = read_splats(stage / "splats.ply")
     assert len(splats) == result.gaussians < len(points)
     np.testing.assert_allclose(splats.log_scales, np.log(CONFIG.voxel_size / 2), rtol=1e-5)
-    assert splats.opacities.min() >= CONFIG.prune_opacity - 1e-6 or result.gaussians > 0
+    # the last pruning (at 90 N) left only opaque Gaussians, and few fade in the last 10 N (measured: none)
+    assert np.mean(splats.opacities >= CONFIG.prune_opacity) > 0.9, np.mean(splats.opacities >= CONFIG.prune_opacity)
     cloud, _ = read_point_cloud(stage / "points.ply")
     assert len(cloud) == result.gaussians
     assert (stage / "loss.png").stat().st_size > 0
