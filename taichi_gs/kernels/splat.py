@@ -67,11 +67,26 @@ def _kernels(dt) -> SimpleNamespace:
     # loops iterate over TILE_SPREAD x n_tiles indices and work on every TILE_SPREAD-th one.
     spread = TILE_SPREAD if on_cpu else 1
 
+    # Shapes: N Gaussians, M SH coefficients, S tile slots (one per Gaussian per tile it touches),
+    # T tiles, H x W pixels. "out" marks what a kernel writes; "scratch" what it uses and leaves.
     @ti.kernel
     def project_and_count(
-        means: fnd(2), quats: fnd(2), log_scales: fnd(2), logits: fnd(1), sh: fnd(3), n: ti.i32, n_sh: ti.i32,
-        cam: mat4, intr: vec4, width: ti.i32, height: ti.i32,
-        proj: fnd(2), rect: ind(2), offsets: ind(1), chunk_base: ind(1), isotropic: ti.template(),
+        means: fnd(2),  # (N, 3)
+        quats: fnd(2),  # (N, 4) w x y z; (1, 4) placeholder when isotropic
+        log_scales: fnd(2),  # (N, 3); (N, 1) when isotropic
+        logits: fnd(1),  # (N,) opacity logits
+        sh: fnd(3),  # (N, M, 3)
+        n: ti.i32,  # N
+        n_sh: ti.i32,  # M
+        cam: mat4,  # camera-to-world
+        intr: vec4,  # fx, fy, cx, cy (rasterizer pixel centres)
+        width: ti.i32,
+        height: ti.i32,
+        proj: fnd(2),  # out (N, P_WIDTH): screen-space record per Gaussian (project.P_* columns)
+        rect: ind(2),  # out (N, 4): tile rectangle x0, y0, x1, y1 (empty when culled)
+        offsets: ind(1),  # out (N + 1,): exclusive prefix sum of tiles touched; offsets[N] = S
+        chunk_base: ind(1),  # scratch (N / SCAN_CHUNK + 2,)
+        isotropic: ti.template(),
     ):
         for g in range(n):
             proj_f.project_one(
@@ -101,10 +116,22 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.kernel
     def bin_and_sort(
-        n: ti.i32, n_slots: ti.i32, tiles_x: ti.i32, n_tiles: ti.i32,
-        proj: fnd(2), rect: ind(2), offsets: ind(1),
-        slot_gid: ind(1), slot_tile: ind(1), tile_cursor: ind(1), tile_start: ind(1),
-        keys: fnd(1), order: ind(1), tmp_keys: fnd(1), tmp_order: ind(1), entries: fnd(2),
+        n: ti.i32,  # N
+        n_slots: ti.i32,  # S
+        tiles_x: ti.i32,  # tiles per image row
+        n_tiles: ti.i32,  # T
+        proj: fnd(2),  # (N, P_WIDTH) from project_and_count
+        rect: ind(2),  # (N, 4)
+        offsets: ind(1),  # (N + 1,)
+        slot_gid: ind(1),  # out (S,): the Gaussian of each slot
+        slot_tile: ind(1),  # out (S,): the tile of each slot
+        tile_cursor: ind(1),  # scratch (T,)
+        tile_start: ind(1),  # out (T + 1,): first sorted slot of each tile; tile_start[T] = S
+        keys: fnd(1),  # out (S,): depth keys, sorted within each tile
+        order: ind(1),  # out (S,): slot index at each sorted position
+        tmp_keys: fnd(1),  # scratch (S,)
+        tmp_order: ind(1),  # scratch (S,)
+        entries: fnd(2),  # out (S, E_WIDTH): the sorted slots' screen records and tile boxes
     ):
         for t in range(n_tiles):
             tile_cursor[t] = 0
@@ -130,9 +157,18 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.kernel
     def blend(
-        tiles_x: ti.i32, n_tiles: ti.i32, width: ti.i32, height: ti.i32,
-        tile_start: ind(1), entries: fnd(2), bg: vec3, state: fnd(3),
-        out_rgb: fnd(3), out_depth: fnd(2), out_trans: fnd(2), out_last: ind(2),
+        tiles_x: ti.i32,
+        n_tiles: ti.i32,  # T
+        width: ti.i32,
+        height: ti.i32,
+        tile_start: ind(1),  # (T + 1,)
+        entries: fnd(2),  # (S, E_WIDTH)
+        bg: vec3,  # background colour
+        state: fnd(3),  # scratch (H, W, F_WIDTH): per-pixel running sums
+        out_rgb: fnd(3),  # out (H, W, 3)
+        out_depth: fnd(2),  # out (H, W): alpha-blended camera z
+        out_trans: fnd(2),  # out (H, W): final transmittance (1 - alpha)
+        out_last: ind(2),  # out (H, W): index within its tile of the last Gaussian blended (-1: none)
     ):
         for i in range(n_tiles * spread):
             if i % spread == 0:
@@ -143,14 +179,40 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.kernel
     def backward(
-        n: ti.i32, n_sh: ti.i32, tiles_x: ti.i32, n_tiles: ti.i32, width: ti.i32, height: ti.i32,
-        cam: mat4, intr: vec4, bg: vec3,
-        means: fnd(2), quats: fnd(2), log_scales: fnd(2), logits: fnd(1), sh: fnd(3),
-        offsets: ind(1), tile_start: ind(1), order: ind(1), entries: fnd(2),
-        out_trans: fnd(2), out_last: ind(2), d_rgb: fnd(3), d_depth: fnd(2), d_alpha: fnd(2),
-        state: fnd(3), slot_grad: fnd(2),
-        d_means: fnd(2), d_quats: fnd(2), d_log_scales: fnd(2), d_logits: fnd(1), d_sh: fnd(3),
-        pose_part: fnd(2), pose_chunks: fnd(2), pose_grad: fnd(1), isotropic: ti.template(),
+        n: ti.i32,  # N
+        n_sh: ti.i32,  # M
+        tiles_x: ti.i32,
+        n_tiles: ti.i32,  # T
+        width: ti.i32,
+        height: ti.i32,
+        cam: mat4,  # camera-to-world
+        intr: vec4,  # fx, fy, cx, cy
+        bg: vec3,
+        means: fnd(2),  # (N, 3)
+        quats: fnd(2),  # (N, 4); (1, 4) when isotropic
+        log_scales: fnd(2),  # (N, 3); (N, 1) when isotropic
+        logits: fnd(1),  # (N,)
+        sh: fnd(3),  # (N, M, 3)
+        offsets: ind(1),  # (N + 1,) from project_and_count
+        tile_start: ind(1),  # (T + 1,) from bin_and_sort
+        order: ind(1),  # (S,)
+        entries: fnd(2),  # (S, E_WIDTH)
+        out_trans: fnd(2),  # (H, W) final transmittance of the forward pass
+        out_last: ind(2),  # (H, W) last slot of the forward pass
+        d_rgb: fnd(3),  # (H, W, 3) dL/d colour
+        d_depth: fnd(2),  # (H, W) dL/d blended depth
+        d_alpha: fnd(2),  # (H, W) dL/d alpha
+        state: fnd(3),  # scratch (H, W, B_WIDTH)
+        slot_grad: fnd(2),  # scratch (S, N_SLOT_GRADS): screen-space gradient of each slot
+        d_means: fnd(2),  # out, added to (N, 3)
+        d_quats: fnd(2),  # out, added to (N, 4)
+        d_log_scales: fnd(2),  # out, added to (N, 3)
+        d_logits: fnd(1),  # out, added to (N,)
+        d_sh: fnd(3),  # out, added to (N, M, 3)
+        pose_part: fnd(2),  # scratch (N, 6)
+        pose_chunks: fnd(2),  # scratch (N / POSE_CHUNK + 1, 6)
+        pose_grad: fnd(1),  # out (6,): dL/d left perturbation of the camera, [translation, rotation]
+        isotropic: ti.template(),
     ):
         for i in range(n_tiles * spread):
             if i % spread == 0:
