@@ -5,7 +5,7 @@ sharp ground truth.
         [--width 160] [--height 120] [--iterations 600] [--k 7] [--out /tmp/bench_deblur]
 
 Stage 3 is measured alone: OUT/refine/ is a stand-in built from the ground-truth mid-exposure poses
-and the fused sensor depth (tests/synthetic_refine.py), so pose errors of stages 1-2 do not enter.
+and the fused sensor depth (taichi_gs/standins.py), so pose errors of stages 1-2 do not enter.
 Every third frame (1, 4, 7, ...) is a test view; its camera is the stand-in pose, refined at test
 time against its own blurred frame (scene frozen). Methods:
 - blurred input: the input frame itself (colour) and the input sensor depth (the floor)
@@ -31,14 +31,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from synthetic_refine import write_refine_outputs  # noqa: E402
-
-from taichi_gs import synth  # noqa: E402
-from taichi_gs.evaluate import inverse_depth_rmse, psnr, ssim  # noqa: E402
-from taichi_gs.io.sequence import load_sequence  # noqa: E402
-from taichi_gs.stages.deblur import PRESETS, run_deblur, split_frames  # noqa: E402
+from taichi_gs import synth
+from taichi_gs.evaluate import inverse_depth_rmse, psnr, ssim
+from taichi_gs.io.sequence import load_sequence
+from taichi_gs.stages.deblur import PRESETS, run_deblur, split_frames
+from taichi_gs.standins import write_refine_outputs
 
 METHODS = {"k = 1 fit (no blur model)": {"k": 1}, "ours no-depth": {"lambda_depth": 0.0}, "ours": {},
            # the real-data options of stage 3, each alone and together (ablation on synthetic data)

@@ -33,13 +33,11 @@ from taichi_gs.io.sequence import load_sequence
 from taichi_gs.kernels import runtime
 from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
 from taichi_gs.stages.refine import PRESETS, RefineConfig, run_refine
+from taichi_gs.standins import perturbed
 from taichi_gs.synth import SynthConfig, generate
 
 sys.path.insert(0, str(Path(__file__).parent))
 from pose import first_frames  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from synthetic_refine import perturbed  # noqa: E402
 
 VOXEL = 0.02
 

@@ -68,7 +68,7 @@ def _read_rgb(path) -> np.ndarray:
 
 
 def test_extreme_blur_held_out_views_get_sharper_and_exposures_approach_truth(tmp_path):
-    from synthetic_refine import write_refine_outputs
+    from taichi_gs.standins import write_refine_outputs
     from taichi_gs.io.sequence import load_sequence
 
     synth.generate(synth.SynthConfig(width=96, height=72, frames=9, trajectory="handheld", blur="extreme", seed=1),

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from synthetic_refine import perturbed
+from taichi_gs.standins import perturbed
 
 from taichi_gs.errors import InputError
 from taichi_gs.evaluate import ate, rpe

@@ -1,4 +1,4 @@
-"""Stand-ins for earlier stages in tests and benchmarks: perturbed ground-truth poses (stage 2's
+"""Stand-ins for earlier stages, for benchmarks and tests: perturbed ground-truth poses (stage 2's
 input) and OUT/refine/ built from a synthetic sequence's ground-truth mid-exposure poses and its
 sensor depth (so stage 3 is measured alone)."""
 
@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from taichi_gs.geometry import backproject, se3_exp, transform
-from taichi_gs.io.ply import write_splats
-from taichi_gs.io.sequence import Sequence
-from taichi_gs.io.trajectory import write_tum
-from taichi_gs.splats import splats_from_points
+from .geometry import backproject, se3_exp, transform
+from .io.ply import write_splats
+from .io.sequence import Sequence
+from .io.trajectory import write_tum
+from .splats import splats_from_points
 
 
 def fused_points(sequence: Sequence, poses: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
