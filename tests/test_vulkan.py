@@ -312,6 +312,45 @@ def test_prefix_sum_and_radix_sort_match_numpy(backend) -> None:
         np.testing.assert_array_equal(out_keys.to_numpy()[:n], keys[want])
 
 
+def test_gpu_projection_and_binning_match_reference_parts(backend) -> None:
+    """The GPU path's parts alone (see tests/test_kernel_parts.py for the CPU path): its projection
+    against reference_renderer.project (f64), and its binning + radix sorts against
+    reference_renderer.bin_tiles applied to the GPU's own records (so f32 rounding cannot move a
+    Gaussian across a tile border or swap near-equal depths between the two)."""
+    import taichi as ti
+
+    sys.path.insert(0, str(TESTS))
+    import reference_renderer as ref
+    import test_kernel_parts as parts
+    import test_render as tr
+    from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
+
+    params = parts.scene(3)
+    params[0][81] = params[0][80]  # a depth tie: the order falls back to the Gaussian index
+    n = len(params[0])
+    rast = Rasterizer(ti.f32)
+    assert rast.gpu is not None
+    view = rast.forward(DeviceGaussians.from_numpy(*params, dtype=ti.f32), Camera(tr.K, tr.POSE, tr.WIDTH, tr.HEIGHT))
+    want = ref.project(*params, tr.K, tr.POSE, tr.WIDTH, tr.HEIGHT)
+    rect = view.rect.to_numpy()[:n]
+    visible = rect[:, 0] <= rect[:, 2]
+    np.testing.assert_array_equal(visible, want["visible"])
+    assert np.abs(rect[visible] - want["rect"][visible]).max() <= 1  # a box edge may round the other way
+    assert (rect[visible] != want["rect"][visible]).mean() < 0.01
+    got = view.proj.to_numpy()[:n][visible]
+    expected = parts.record_columns(want)[visible]
+    err = np.abs(got - expected).max(axis=0) / np.abs(expected).max(axis=0)
+    assert err.max() < 2e-5, dict(enumerate(err))
+
+    proj = view.proj.to_numpy()[:n].astype(np.float64)
+    lists = ref.bin_tiles({"visible": visible, "rect": rect, "depth": proj[:, parts.P_DEPTH]}, tr.WIDTH, tr.HEIGHT)
+    ranges = view.tile_range.to_numpy()[: len(lists)]
+    gid = view.slot_gid.to_numpy()[view.order.to_numpy()[: view.n_slots]]
+    assert view.n_slots == sum(len(ids) for ids in lists) and max(len(ids) for ids in lists) > 100
+    for t, ids in enumerate(lists):
+        np.testing.assert_array_equal(gid[ranges[t, 0]:ranges[t, 1]] if len(ids) else [], ids, err_msg=f"tile {t}")
+
+
 def test_losses_blur_adam_match_cpu(backend, cpu_reference) -> None:
     for key, value in kernel_outputs().items():
         check_close(key, value, cpu_reference[key])
