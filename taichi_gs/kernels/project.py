@@ -291,8 +291,9 @@ def make(dt) -> SimpleNamespace:
         """Backward of :func:`project_one` for a visible Gaussian g.
 
         ``gs`` holds dL/d(screen record) in the record's column order (``P_MEAN_X`` .. ``P_COLOR + 2``,
-        :data:`N_GRADS` values; the conic's b is the shared off-diagonal entry). Accumulates parameter gradients (+=) and returns the
-        6-vector pose gradient [translation, rotation] of this Gaussian (left perturbation).
+        :data:`N_GRADS` values; the conic's b is the shared off-diagonal entry). Accumulates parameter
+        gradients (+=) and returns the 6-vector pose gradient [translation, rotation] of this Gaussian
+        (left perturbation).
         """
         rot_c = ti.Matrix([[cam[i, j] for j in ti.static(range(3))] for i in ti.static(range(3))], dt=dt)
         t_c = vec3(cam[0, 3], cam[1, 3], cam[2, 3])
