@@ -351,6 +351,41 @@ def test_gpu_projection_and_binning_match_reference_parts(backend) -> None:
         np.testing.assert_array_equal(gid[ranges[t, 0]:ranges[t, 1]] if len(ids) else [], ids, err_msg=f"tile {t}")
 
 
+def test_gpu_blend_matches_reference_given_reference_lists(backend) -> None:
+    """The GPU blend kernel alone (block per tile, shared-memory batches), fed the reference's
+    records and tile lists, against reference_renderer.blend_tiles (f64)."""
+    import taichi as ti
+
+    sys.path.insert(0, str(TESTS))
+    import reference_renderer as ref
+    import test_kernel_parts as parts
+    import test_render as tr
+    from taichi_gs.kernels.rasterize import E_BOX, E_WIDTH
+    from taichi_gs.render import Rasterizer, to_device
+
+    params = tr.make_scene(8, n=80, n_sh=9, dense=400)
+    rec = ref.project(*params, tr.K, tr.POSE, tr.WIDTH, tr.HEIGHT)
+    lists = ref.bin_tiles(rec, tr.WIDTH, tr.HEIGHT)
+    want = ref.blend_tiles(rec, lists, tr.WIDTH, tr.HEIGHT, background=tr.BACKGROUND)
+    ids = np.concatenate(lists)
+    entries = np.zeros((len(ids), E_WIDTH))
+    entries[:, :parts.P_WIDTH] = parts.record_columns(rec)[ids]
+    entries[:, E_BOX:E_BOX + 4] = rec["rect"][ids]
+    ends = np.cumsum([len(i) for i in lists])
+    tile_range = ti.ndarray(ti.i32, (len(lists), 2))
+    tile_range.from_numpy(np.stack([ends - [len(i) for i in lists], ends], axis=1).astype(np.int32))
+    assert max(len(i) for i in lists) > 256, "a tile needing two shared-memory batches"
+    h, w = tr.HEIGHT, tr.WIDTH
+    images = [ti.ndarray(ti.f32, (h, w, 3)), ti.ndarray(ti.f32, (h, w)), ti.ndarray(ti.f32, (h, w)),
+              ti.ndarray(ti.i32, (h, w))]
+    Rasterizer(ti.f32).gpu.k.blend_forward(-(-w // 16), len(lists), w, h, tile_range, to_device(entries, ti.f32),
+                                           ti.Vector(tr.BACKGROUND, dt=ti.f32), *images)
+    rgb, depth, trans, last = (a.to_numpy() for a in images)
+    for name, got, expected in (("rgb", rgb, want[0]), ("depth", depth, want[1]), ("alpha", 1 - trans, want[2])):
+        assert np.abs(got - expected).max() <= 2e-5 * np.abs(expected).max(), name
+    np.testing.assert_array_equal(last, want[3])
+
+
 def test_losses_blur_adam_match_cpu(backend, cpu_reference) -> None:
     for key, value in kernel_outputs().items():
         check_close(key, value, cpu_reference[key])
