@@ -16,13 +16,19 @@ _ind = ti.types.ndarray(dtype=ti.i32, ndim=1)
 @functools.cache
 def _kernels():
     @ti.kernel
-    def fixed_loops(hist: _ind, n: ti.i32):
+    def fixed_loops(
+        hist: _ind,  # output (M,) counts, added to
+        n: ti.i32,
+    ):
         for _ in range(4):
             for j in range(n):
                 ti.atomic_add(hist[j % hist.shape[0]], 1)
 
     @ti.kernel
-    def ragged_loops(counts: _ind, hist: _ind):
+    def ragged_loops(
+        counts: _ind,  # (G,) loop length per outer iteration
+        hist: _ind,  # output (M,) counts, added to
+    ):
         for g in range(counts.shape[0]):
             for t in range(counts[g]):
                 ti.atomic_add(hist[(g + t) % hist.shape[0]], 1)

@@ -45,6 +45,8 @@ P_MEAN_X, P_MEAN_Y, P_CONIC_A, P_CONIC_B, P_CONIC_C, P_DEPTH, P_OPACITY = range(
 P_COLOR = 7  # 7, 8, 9
 P_CUTOFF = 10  # power below which the pixel gets nothing: -ext^2 / 2
 P_WIDTH = 11
+# A screen record's gradient holds the differentiable columns: P_MEAN_X .. P_COLOR + 2 (not the cut-off).
+N_GRADS = P_CUTOFF
 
 
 @functools.cache
@@ -203,8 +205,20 @@ def make(dt) -> SimpleNamespace:
 
     @ti.func
     def project_one(
-        g, means: Array, quats: Array, log_scales: Array, logits: Array, sh: Array, n_sh, cam, intr, width, height,
-        proj: Array, rect: Array, isotropic: ti.template(),
+        g,  # Gaussian index
+        means: Array,  # (N, 3) world centres
+        quats: Array,  # (N, 4) rotations [w, x, y, z], not necessarily unit (unused when isotropic)
+        log_scales: Array,  # (N, 3), or (N, 1) when isotropic
+        logits: Array,  # (N,) opacity logits
+        sh: Array,  # (N, >= n_sh, 3) SH coefficients
+        n_sh,  # SH coefficients used: 1, 4, 9 or 16
+        cam,  # 4x4 camera-to-world pose
+        intr,  # (fx, fy, cx, cy), pixel centres at +0.5
+        width,
+        height,
+        proj: Array,  # output (N, P_WIDTH): screen record, written for visible Gaussians only
+        rect: Array,  # output (N, 4) i32: pixel box u0, v0, u1, v1 (u0 > u1 when culled)
+        isotropic: ti.template(),
     ):
         """Project Gaussian g; write its screen record proj[g] and clipped pixel box rect[g]
         (rect[g, 0] > rect[g, 2] marks a culled Gaussian)."""
@@ -255,14 +269,31 @@ def make(dt) -> SimpleNamespace:
 
     @ti.func
     def project_one_vjp(
-        g, means: Array, quats: Array, log_scales: Array, logits: Array, sh: Array, n_sh, cam, intr, width, height,
-        gs, isotropic: ti.template(), d_means: Array, d_quats: Array, d_log_scales: Array, d_logits: Array, d_sh: Array,
+        g,  # Gaussian index (visible)
+        means: Array,  # (N, 3)  -- the inputs as in project_one
+        quats: Array,  # (N, 4)
+        log_scales: Array,  # (N, 3) or (N, 1)
+        logits: Array,  # (N,)
+        sh: Array,  # (N, >= n_sh, 3)
+        n_sh,
+        cam,  # 4x4 camera-to-world
+        intr,  # (fx, fy, cx, cy)
+        width,
+        height,
+        gs,  # N_GRADS-vector: dL/d(screen record)
+        isotropic: ti.template(),
+        d_means: Array,  # output (N, 3), added to
+        d_quats: Array,  # output (N, 4), added to (untouched when isotropic)
+        d_log_scales: Array,  # output (N, 3), added to (untouched when isotropic)
+        d_logits: Array,  # output (N,), added to
+        d_sh: Array,  # output (N, >= n_sh, 3), added to
     ):
         """Backward of :func:`project_one` for a visible Gaussian g.
 
-        ``gs`` holds dL/d(mean2d x, y, conic a, b, c, depth, opacity, colour r, g, b) (b is the
-        shared off-diagonal entry). Accumulates parameter gradients (+=) and returns the
-        6-vector pose gradient [translation, rotation] of this Gaussian (left perturbation).
+        ``gs`` holds dL/d(screen record) in the record's column order (``P_MEAN_X`` .. ``P_COLOR + 2``,
+        :data:`N_GRADS` values; the conic's b is the shared off-diagonal entry). Accumulates parameter
+        gradients (+=) and returns the 6-vector pose gradient [translation, rotation] of this Gaussian
+        (left perturbation).
         """
         rot_c = ti.Matrix([[cam[i, j] for j in ti.static(range(3))] for i in ti.static(range(3))], dt=dt)
         t_c = vec3(cam[0, 3], cam[1, 3], cam[2, 3])
@@ -280,7 +311,7 @@ def make(dt) -> SimpleNamespace:
         g_col = vec3(0.0)
         for c in ti.static(range(3)):
             if raw[c] > 0.0:
-                g_col[c] = gs[7 + c]
+                g_col[c] = gs[P_COLOR + c]
         for k in ti.static(range(16)):
             if k < n_sh:
                 for c in ti.static(range(3)):
@@ -297,7 +328,7 @@ def make(dt) -> SimpleNamespace:
 
         # opacity through the sigmoid
         opacity = 1.0 / (1.0 + ti.exp(-logits[g]))
-        d_logits[g] = d_logits[g] + gs[6] * opacity * (1.0 - opacity)
+        d_logits[g] = d_logits[g] + gs[P_OPACITY] * opacity * (1.0 - opacity)
 
         # conic -> 2D covariance -> camera covariance and Jacobian
         cov_c = camera_covariance(g, quats, log_scales, view_rot, isotropic)
@@ -306,7 +337,9 @@ def make(dt) -> SimpleNamespace:
         jac = ewa_jacobian(cl[0], cl[1], z, fx, fy)
         cov2 = jac @ cov_c @ jac.transpose() + dt(LOW_PASS) * ti.Matrix.identity(dt, 2)
         conic = cov2.inverse()
-        g_conic = ti.Matrix([[gs[2], 0.5 * gs[3]], [0.5 * gs[3], gs[4]]], dt=dt)
+        g_conic = ti.Matrix(
+            [[gs[P_CONIC_A], 0.5 * gs[P_CONIC_B]], [0.5 * gs[P_CONIC_B], gs[P_CONIC_C]]], dt=dt
+        )
         g_cov2 = -conic @ g_conic @ conic
         g_cov_c = jac.transpose() @ g_cov2 @ jac
         g_jac = 2.0 * g_cov2 @ jac @ cov_c
@@ -329,9 +362,9 @@ def make(dt) -> SimpleNamespace:
         else:
             g_p[1] += g_ty
         # mean2d and depth
-        g_p[0] += gs[0] * fx / z
-        g_p[1] += gs[1] * fy / z
-        g_p[2] += -(gs[0] * fx * p[0] + gs[1] * fy * p[1]) / z2 + gs[5]
+        g_p[0] += gs[P_MEAN_X] * fx / z
+        g_p[1] += gs[P_MEAN_Y] * fy / z
+        g_p[2] += -(gs[P_MEAN_X] * fx * p[0] + gs[P_MEAN_Y] * fy * p[1]) / z2 + gs[P_DEPTH]
 
         # p = view_rot @ d
         g_d += view_rot.transpose() @ g_p

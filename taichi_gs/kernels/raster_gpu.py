@@ -58,9 +58,22 @@ def make(dt) -> SimpleNamespace:
 
     @ti.kernel
     def project_keys(
-        means: fnd(2), quats: fnd(2), log_scales: fnd(2), logits: fnd(1), sh: fnd(3), n: ti.i32, n_sh: ti.i32,
-        cam: mat4, intr: vec4, width: ti.i32, height: ti.i32,
-        proj: fnd(2), rect: ind(2), depth_keys: ind(1), ids: ind(1), isotropic: ti.template(),
+        means: fnd(2),  # (N, 3)
+        quats: fnd(2),  # (N, 4)
+        log_scales: fnd(2),  # (N, 3), (N, 1) when isotropic
+        logits: fnd(1),  # (N,)
+        sh: fnd(3),  # (N, >= n_sh, 3)
+        n: ti.i32,
+        n_sh: ti.i32,
+        cam: mat4,  # camera-to-world
+        intr: vec4,  # fx, fy, cx, cy
+        width: ti.i32,
+        height: ti.i32,
+        proj: fnd(2),  # output (N, P_WIDTH) screen records
+        rect: ind(2),  # output (N, 4) pixel boxes
+        depth_keys: ind(1),  # output (N,) f32 bits of the depth, INF_BITS when culled
+        ids: ind(1),  # output (N,) 0 .. N-1
+        isotropic: ti.template(),
     ):
         for g in range(n):
             proj_f.project_one(
@@ -73,13 +86,26 @@ def make(dt) -> SimpleNamespace:
             ids[g] = g
 
     @ti.kernel
-    def count_tiles(n: ti.i32, order: ind(1), rect: ind(2), counts: ind(1)):
+    def count_tiles(
+        n: ti.i32,
+        order: ind(1),  # (N,) Gaussian ids in depth order
+        rect: ind(2),  # (N, 4)
+        counts: ind(1),  # output (N,): tiles touched by order[i]
+    ):
         for i in range(n):
             counts[i] = tiles.tile_count(rect, order[i])
 
     @ti.kernel
-    def emit_slots(n: ti.i32, tiles_x: ti.i32, order: ind(1), rect: ind(2), offsets: ind(1),
-                   tile_keys: ind(1), slot_ids: ind(1), slot_gid: ind(1)):
+    def emit_slots(
+        n: ti.i32,
+        tiles_x: ti.i32,
+        order: ind(1),  # (N,) depth order
+        rect: ind(2),  # (N, 4)
+        offsets: ind(1),  # (N + 1,) exclusive scan of count_tiles
+        tile_keys: ind(1),  # output (S,) tile id of each slot
+        slot_ids: ind(1),  # output (S,) 0 .. S-1
+        slot_gid: ind(1),  # output (S,) Gaussian id of each slot
+    ):
         for i in range(n):
             g = order[i]
             if rect[g, 0] <= rect[g, 2]:
@@ -93,8 +119,16 @@ def make(dt) -> SimpleNamespace:
                         s += 1
 
     @ti.kernel
-    def ranges_and_gather(n_slots: ti.i32, sorted_tiles: ind(1), order: ind(1), slot_gid: ind(1),
-                          proj: fnd(2), rect: ind(2), tile_range: ind(2), entries: fnd(2)):
+    def ranges_and_gather(
+        n_slots: ti.i32,
+        sorted_tiles: ind(1),  # (S,) tile ids, sorted
+        order: ind(1),  # (S,) slot ids in the same order
+        slot_gid: ind(1),  # (S,)
+        proj: fnd(2),  # (N, P_WIDTH)
+        rect: ind(2),  # (N, 4)
+        tile_range: ind(2),  # output (T, 2): [start, end) of each tile's records (pre-zeroed)
+        entries: fnd(2),  # output (S, E_WIDTH): records in tile order
+    ):
         for j in range(n_slots):
             t = sorted_tiles[j]
             if j == 0 or sorted_tiles[j - 1] != t:
@@ -109,8 +143,17 @@ def make(dt) -> SimpleNamespace:
 
     @ti.kernel
     def blend_forward(
-        tiles_x: ti.i32, n_tiles: ti.i32, width: ti.i32, height: ti.i32, tile_range: ind(2), entries: fnd(2),
-        bg: vec3, out_rgb: fnd(3), out_depth: fnd(2), out_trans: fnd(2), out_last: ind(2),
+        tiles_x: ti.i32,
+        n_tiles: ti.i32,
+        width: ti.i32,
+        height: ti.i32,
+        tile_range: ind(2),  # (T, 2)
+        entries: fnd(2),  # (S, E_WIDTH)
+        bg: vec3,
+        out_rgb: fnd(3),  # output (H, W, 3)
+        out_depth: fnd(2),  # output (H, W) blended depth (not normalised)
+        out_trans: fnd(2),  # output (H, W) final transmittance
+        out_last: ind(2),  # output (H, W) tile-local index of the last contributor, -1 for none
     ):
         ti.loop_config(block_dim=PIXELS)
         for i in range(n_tiles * PIXELS):
@@ -169,9 +212,21 @@ def make(dt) -> SimpleNamespace:
 
     @ti.kernel
     def blend_backward(
-        tiles_x: ti.i32, n_tiles: ti.i32, width: ti.i32, height: ti.i32, tile_range: ind(2), order: ind(1),
-        entries: fnd(2), bg: vec3, out_trans: fnd(2), out_last: ind(2), d_rgb: fnd(3), d_depth: fnd(2),
-        d_alpha: fnd(2), slot_grad: fnd(2), subgroup: ti.template(),
+        tiles_x: ti.i32,
+        n_tiles: ti.i32,
+        width: ti.i32,
+        height: ti.i32,
+        tile_range: ind(2),  # (T, 2)
+        order: ind(1),  # (S,) slot id of each tile-ordered record
+        entries: fnd(2),  # (S, E_WIDTH)
+        bg: vec3,
+        out_trans: fnd(2),  # (H, W) from blend_forward
+        out_last: ind(2),  # (H, W) from blend_forward
+        d_rgb: fnd(3),  # (H, W, 3) dL/d image
+        d_depth: fnd(2),  # (H, W)
+        d_alpha: fnd(2),  # (H, W)
+        slot_grad: fnd(2),  # output (S, N_SLOT_GRADS) dL/d(screen record) per slot, added to (pre-zeroed)
+        subgroup: ti.template(),  # pre-sum over the subgroup before the atomics (Vulkan)
     ):
         ti.loop_config(block_dim=PIXELS)
         for i in range(n_tiles * PIXELS):
@@ -238,18 +293,18 @@ def make(dt) -> SimpleNamespace:
                                     + g_alpha * final_trans * inv_keep
                                 )
                                 for c in ti.static(range(3)):
-                                    acc[7 + c] = g_rgb[c] * w
-                                acc[5] = g_depth * w
+                                    acc[P_COLOR + c] = g_rgb[c] * w
+                                acc[P_DEPTH] = g_depth * w
                                 behind += color * w
                                 behind_depth += depth * w
                                 if opacity * gauss <= dt(MAX_ALPHA):
-                                    acc[6] = grad_alpha * gauss
+                                    acc[P_OPACITY] = grad_alpha * gauss
                                     g_power = grad_alpha * alpha
-                                    acc[0] = -g_power * (ca * dx + cb * dy)
-                                    acc[1] = -g_power * (cb * dx + cc * dy)
-                                    acc[2] = -0.5 * g_power * dx * dx
-                                    acc[3] = -g_power * dx * dy
-                                    acc[4] = -0.5 * g_power * dy * dy
+                                    acc[P_MEAN_X] = -g_power * (ca * dx + cb * dy)
+                                    acc[P_MEAN_Y] = -g_power * (cb * dx + cc * dy)
+                                    acc[P_CONIC_A] = -0.5 * g_power * dx * dx
+                                    acc[P_CONIC_B] = -g_power * dx * dy
+                                    acc[P_CONIC_C] = -0.5 * g_power * dy * dy
                     slot = batch_slot[r]
                     if ti.static(subgroup):
                         # sum over the subgroup's pixels first: one atomic per subgroup, not per pixel
@@ -266,11 +321,27 @@ def make(dt) -> SimpleNamespace:
 
     @ti.kernel
     def gaussian_backward(
-        n: ti.i32, n_sh: ti.i32, width: ti.i32, height: ti.i32, cam: mat4, intr: vec4,
-        means: fnd(2), quats: fnd(2), log_scales: fnd(2), logits: fnd(1), sh: fnd(3),
-        order: ind(1), offsets: ind(1), slot_grad: fnd(2),
-        d_means: fnd(2), d_quats: fnd(2), d_log_scales: fnd(2), d_logits: fnd(1), d_sh: fnd(3),
-        pose_part: fnd(2), isotropic: ti.template(),
+        n: ti.i32,
+        n_sh: ti.i32,
+        width: ti.i32,
+        height: ti.i32,
+        cam: mat4,
+        intr: vec4,
+        means: fnd(2),  # (N, 3)
+        quats: fnd(2),  # (N, 4)
+        log_scales: fnd(2),  # (N, 3) or (N, 1)
+        logits: fnd(1),  # (N,)
+        sh: fnd(3),  # (N, >= n_sh, 3)
+        order: ind(1),  # (N,) depth order: Gaussian order[i] owns slots offsets[i] .. offsets[i + 1]
+        offsets: ind(1),  # (N + 1,)
+        slot_grad: fnd(2),  # (S, N_SLOT_GRADS)
+        d_means: fnd(2),  # output (N, 3), added to
+        d_quats: fnd(2),  # output (N, 4), added to
+        d_log_scales: fnd(2),  # output (N, 3), added to
+        d_logits: fnd(1),  # output (N,), added to
+        d_sh: fnd(3),  # output (N, >= n_sh, 3), added to
+        pose_part: fnd(2),  # output (N, 6): row i = the pose gradient of Gaussian order[i]
+        isotropic: ti.template(),
     ):
         for i in range(n):
             pose = ti.Vector.zero(dt, 6)
@@ -287,7 +358,11 @@ def make(dt) -> SimpleNamespace:
                 pose_part[i, c] = pose[c]
 
     @ti.kernel
-    def sum_rows(src: fnd(2), n: ti.i32, dst: fnd(2)):
+    def sum_rows(
+        src: fnd(2),  # (n, 6)
+        n: ti.i32,
+        dst: fnd(2),  # output (ceil(n / POSE_BLOCK), 6)
+    ):
         """dst[b] = sum of src rows [b * POSE_BLOCK, (b + 1) * POSE_BLOCK) (6 columns), tree in shared memory."""
         ti.loop_config(block_dim=POSE_BLOCK)
         for i in range(((n + POSE_BLOCK - 1) // POSE_BLOCK) * POSE_BLOCK):

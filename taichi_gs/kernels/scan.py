@@ -55,7 +55,12 @@ def _kernels() -> SimpleNamespace:
     sync = ti.simt.block.sync
 
     @ti.kernel
-    def block_scan(src: _ind, dst: _ind, sums: _ind, n: ti.i32):
+    def block_scan(
+        src: _ind,  # (>= n,)
+        dst: _ind,  # output (n + 1,)
+        sums: _ind,  # output (n // BLOCK + 1,) block totals
+        n: ti.i32,
+    ):
         """dst[i] = sum of src[block start .. i) for i <= n (src[n] counts as 0); sums[b] = block total."""
         n_blocks = (n + BLOCK) // BLOCK
         ti.loop_config(block_dim=BLOCK)
@@ -81,12 +86,22 @@ def _kernels() -> SimpleNamespace:
                 sums[i // BLOCK] = inclusive
 
     @ti.kernel
-    def add_block_offsets(dst: _ind, offsets: _ind, n: ti.i32):
+    def add_block_offsets(
+        dst: _ind,  # (n + 1,) block-local scans, made global in place (output)
+        offsets: _ind,  # (n // BLOCK + 1,) exclusive scan of the block totals
+        n: ti.i32,
+    ):
         for i in range(n + 1):
             dst[i] = dst[i] + offsets[i // BLOCK]
 
     @ti.kernel
-    def digit_histogram(keys: _ind, n: ti.i32, shift: ti.i32, n_blocks: ti.i32, table: _ind):
+    def digit_histogram(
+        keys: _ind,  # (>= n,)
+        n: ti.i32,
+        shift: ti.i32,  # the digit's lowest bit
+        n_blocks: ti.i32,  # ceil(n / CHUNK)
+        table: _ind,  # output (RADIX * n_blocks,), digit-major
+    ):
         """table[d * n_blocks + b] = how many keys of block b have digit d at ``shift``."""
         ti.loop_config(block_dim=BLOCK)
         for i in range(n_blocks * BLOCK):
@@ -104,8 +119,16 @@ def _kernels() -> SimpleNamespace:
             table[tid * n_blocks + b] = hist[tid]
 
     @ti.kernel
-    def scatter(keys: _ind, vals: _ind, n: ti.i32, shift: ti.i32, n_blocks: ti.i32, base: _ind,
-                out_keys: _ind, out_vals: _ind):
+    def scatter(
+        keys: _ind,  # (>= n,)
+        vals: _ind,  # (>= n,)
+        n: ti.i32,
+        shift: ti.i32,
+        n_blocks: ti.i32,
+        base: _ind,  # (RADIX * n_blocks + 1,) exclusive scan of digit_histogram's table
+        out_keys: _ind,  # output (>= n,)
+        out_vals: _ind,  # output (>= n,)
+    ):
         """Stable scatter of block b's pairs to base[d * n_blocks + b] + rank among equal digits."""
         ti.loop_config(block_dim=BLOCK)
         for i in range(n_blocks * BLOCK):
