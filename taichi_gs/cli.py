@@ -366,8 +366,11 @@ def reconstruct(
     trust_depth_scale: TrustDepthOption = False,
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
+    profile: Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md: wall and "
+                                          "CPU seconds per stage and per kind of work (renders, losses, ...).")] = False,
 ) -> None:
     """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
+    from . import profiling
     from .io.lock import output_lock
     from .pipeline import reconstruct as run_all
     from .pipeline import resolve_sections
@@ -383,8 +386,14 @@ def reconstruct(
         verb = "done" if stage.ran else "already done, skipped"
         console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
 
+    profiler = profiling.Profiler() if profile else None
+    if profiler is not None:
+        profiling.install(profiler)
     with output_lock(out):
         run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report)
+        if profiler is not None:
+            paths = profiling.write(profiler, out)
+            console.print(f"profile: {paths[1]}", highlight=False)
     console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 

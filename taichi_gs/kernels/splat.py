@@ -340,6 +340,11 @@ def camera_args(camera: Camera, dtype) -> tuple:
     return cam, intr
 
 
+def sync() -> None:
+    """Wait for every launched kernel to finish (for timers)."""
+    ti.sync()
+
+
 class _PhaseClock:
     """Adds synchronised wall time per phase into a dict; does nothing without one."""
 
