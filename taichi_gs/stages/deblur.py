@@ -37,7 +37,7 @@ from ..plots import image_grid, line_plot
 from ..render import virtual_pose
 from ..splats import Splats
 from .divergence import DivergenceGuard
-from .schedule import downsample_depth, exp_decay, scaled_intrinsics
+from .schedule import downsample_depth, exp_decay, scaled_intrinsics, training_scale, views_for_span
 
 
 PARAMETER_CHECK_EVERY = 50  # iterations between divergence checks of the parameters (a device copy)
@@ -96,6 +96,14 @@ class DeblurConfig:
     fill_frames: int = 2
     fill_stride: int = 2
     grid_frames: int = 4
+    # [ours] coarse-to-fine: the first coarse_fraction of the iterations train at 1/coarse_scale of the
+    # training resolution (1 = off); the rest at full training resolution
+    coarse_scale: int = 1
+    coarse_fraction: float = 0.0
+    # [ours] k per exposure: each step renders the fewest views (k_min..k) whose neighbours lie at most
+    # max_step_px apart at the resolution trained (the 1 px rule per frame and phase); off: always k
+    adaptive_k: bool = False
+    k_min: int = 3
 
 
 PRESETS = {
@@ -332,21 +340,25 @@ def run_deblur(
                                                         colours, colour_adam)
 
     guard = DivergenceGuard("stage 3 (deblur)", splats.means.mean(axis=0), extent)
+    full, phase = frames, {config.resolution_scale: frames}
     t0 = time.perf_counter()
     for it in range(first, config.iterations):
         fraction = it / max(config.iterations - 1, 1)
+        frames, model = _phase(sequence, model, phase, training_scale(it, config.iterations, config.resolution_scale,
+                                                                       config.coarse_scale, config.coarse_fraction))
         frame = training_frame(train, it, rng, config.seed, config.epoch_sampling)
         rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
                       quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
                       colors=config.lr_colors)
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
-                          config.k, config.lambda_dssim, config.lambda_depth, rates,
+                          _views(offsets[frame], frames.K[0, 0], frames.median_depth[frame], config),
+                          config.lambda_dssim, config.lambda_depth, rates,
                           colours[frame] if config.colour_affine else None)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
             updated = exposure_adam.step(offsets[frame], np.stack([step.grad_start, step.grad_end]), frame, lr_exposure)
-            offsets[frame] = keep_open(updated, start[frame], config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
+            offsets[frame] = keep_open(updated, start[frame], config.min_open_px, full.K[0, 0], full.median_depth[frame])
             if config.colour_affine:
                 colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
         loss = (1 - config.lambda_dssim) * step.losses["l1"] + config.lambda_dssim * step.losses["dssim"] \
@@ -368,6 +380,7 @@ def run_deblur(
             _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history, colours, colour_adam)
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
+    frames, model = _phase(sequence, model, phase, config.resolution_scale)
     for frame in test:
         offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
                                                                frame, config)
@@ -383,6 +396,27 @@ def run_deblur(
     if checkpoint.is_file():
         checkpoint.unlink()
     return result
+
+
+def _views(d: np.ndarray, focal: float, depth: float, config: DeblurConfig) -> int:
+    """Virtual views for one exposure: ``config.k``, or with ``adaptive_k`` the 1 px rule at this resolution."""
+    if not config.adaptive_k:
+        return config.k
+    return views_for_span(exposure_px(d[0], d[1], focal, depth), config.max_step_px, config.k_min, config.k)
+
+
+def _phase(sequence: Sequence, model: BlurScene, cache: dict[int, _Frames], scale: int) -> tuple[_Frames, BlurScene]:
+    """[ours] Coarse-to-fine: the frames at resolution divisor ``scale`` (loaded once) and ``model``
+    moved to that resolution (the same Gaussians, Adam moments and densification statistics)."""
+    if scale not in cache:
+        cache[scale] = _load_frames(sequence, scale)
+    frames = cache[scale]
+    height, width = frames.colors[0].shape[:2]
+    if (model.width, model.height) != (width, height):
+        moved = BlurScene(model.splats(), frames.K, width, height)
+        moved.load_state(model.state())
+        model = moved
+    return frames, model
 
 
 def _densifies(done: int, config: DeblurConfig) -> bool:
@@ -450,7 +484,8 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
     colour = IDENTITY.copy()
     guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
     for it in range(config.test_pose_iterations):
-        step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], config.k,
+        step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1],
+                          _views(d, frames.K[0, 0], frames.median_depth[frame], config),
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         d = adam.step(d, np.stack([step.grad_start, step.grad_end]), 0, config.lr_test_pose)

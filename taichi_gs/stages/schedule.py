@@ -25,3 +25,29 @@ def scaled_intrinsics(K: np.ndarray, scale: int) -> np.ndarray:
     K[0, 2] = (K[0, 2] - scale // 2) / scale
     K[1, 2] = (K[1, 2] - scale // 2) / scale
     return K
+
+
+def training_scale(iteration: int, iterations: int, base_scale: int, coarse_scale: int, coarse_fraction: float) -> int:
+    """[ours] Coarse-to-fine: the resolution divisor at ``iteration``: ``base_scale * coarse_scale``
+    for the first ``coarse_fraction`` of the ``iterations``, ``base_scale`` after (the end is always
+    trained at the base resolution, so Gaussians too small for the coarse pixels are corrected)."""
+    if coarse_scale > 1 and iteration < int(round(coarse_fraction * iterations)):
+        return base_scale * coarse_scale
+    return base_scale
+
+
+def views_for_span(span_px: float, max_step_px: float, k_min: int, k_max: int) -> int:
+    """[ours] The 1 px rule per exposure: the fewest virtual views whose neighbours lie at most
+    ``max_step_px`` apart on an exposure ``span_px`` long (ceil(span / step) + 1), within [k_min, k_max]."""
+    wanted = int(np.ceil(max(span_px, 0.0) / max_step_px)) + 1
+    return int(min(max(wanted, k_min), k_max))
+
+
+def window_converged(values: list[float], window: int, rel_tol: float) -> bool:
+    """[ours] True when the mean of the last ``window`` values differs from the mean of the
+    ``window`` before by at most ``rel_tol`` of the latter (False until 2 windows are there)."""
+    if window < 1 or len(values) < 2 * window:
+        return False
+    last = float(np.mean(values[-window:]))
+    before = float(np.mean(values[-2 * window:-window]))
+    return abs(last - before) <= rel_tol * max(abs(before), 1e-12)

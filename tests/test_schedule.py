@@ -1,0 +1,63 @@
+"""[ours] Work that follows need: coarse-to-fine resolution, k per exposure, convergence windows,
+and stage 3's move of a scene between resolutions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from taichi_gs.stages.schedule import training_scale, views_for_span, window_converged
+
+
+def test_coarse_phase_covers_the_given_share_and_the_end_is_full_resolution():
+    scales = [training_scale(it, 100, 1, 2, 0.4) for it in range(100)]
+    assert scales[:40] == [2] * 40 and scales[40:] == [1] * 60
+    assert {training_scale(it, 100, 2, 2, 0.4) for it in range(40)} == {4}
+    assert training_scale(99, 100, 2, 2, 1.0) == 4 and training_scale(0, 100, 1, 1, 0.9) == 1
+
+
+@pytest.mark.parametrize("span, step, k_min, k_max, expected", [
+    (12.0, 2.0, 3, 7, 7), (8.0, 2.0, 3, 7, 5), (8.1, 2.0, 3, 7, 6), (1.0, 2.0, 3, 7, 3), (40.0, 1.0, 3, 15, 15),
+    (0.0, 1.0, 2, 15, 2), (6.0, 2.0, 5, 3, 3)])
+def test_views_keep_neighbours_within_the_step_and_the_bounds(span, step, k_min, k_max, expected):
+    k = views_for_span(span, step, k_min, k_max)
+    assert k == expected
+    if k < k_max:
+        assert span / (k - 1) <= step  # neighbours close enough
+    if min(k_min, k_max) < k < k_max:
+        assert span / (k - 2) > step  # and no view more than needed
+
+
+def test_window_convergence_needs_two_windows_and_a_small_relative_change():
+    assert not window_converged([1.0] * 5, 3, 0.01)
+    assert window_converged([1.0, 1.0, 1.0, 1.005, 0.998, 1.0], 3, 0.01)
+    assert not window_converged([2.0, 2.0, 2.0, 1.0, 1.0, 1.0], 3, 0.01)
+    assert not window_converged(list(np.linspace(1.0, 0.5, 40)), 10, 0.05)
+    assert window_converged(list(np.linspace(1.0, 0.99, 40)), 10, 0.05)
+
+
+def test_moving_the_scene_between_resolutions_keeps_gaussians_and_optimiser_state(tmp_path):
+    from taichi_gs.deblur_model import BlurScene
+    from taichi_gs.splats import splats_from_points
+    from taichi_gs.stages.deblur import _load_frames, _phase
+
+    synth = pytest.importorskip("taichi_gs.synth")
+    from taichi_gs.io.sequence import load_sequence
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=3, seed=2), tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    rng = np.random.default_rng(0)
+    splats = splats_from_points(rng.uniform(-1, 1, (50, 3)) + [0, 0, 3], rng.uniform(0, 1, (50, 3)), scale=0.05,
+                                opacity=0.5)
+    cache = {1: _load_frames(sequence, 1)}
+    model = BlurScene(splats, cache[1].K, 64, 48)
+    model.grad_sum[:] = rng.uniform(size=model.count)
+    before = model.state()
+    frames, coarse = _phase(sequence, model, cache, 2)
+    assert (coarse.width, coarse.height) == (32, 24) and frames.colors[0].shape == (24, 32, 3)
+    assert frames.K[0, 0] == pytest.approx(cache[1].K[0, 0] / 2)
+    for name, value in coarse.state().items():
+        np.testing.assert_array_equal(value, before[name])
+    frames, back = _phase(sequence, coarse, cache, 1)
+    assert (back.width, back.height) == (64, 48) and frames is cache[1]
+    assert _phase(sequence, back, cache, 1)[1] is back
