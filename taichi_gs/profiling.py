@@ -38,6 +38,7 @@ class Profiler:
         self.stages: dict[str, dict[str, Any]] = {}
         self.stage = "outside stages"
         self._stack: list[list[float]] = []  # per open section: [child wall, child cpu]
+        self.last = ("", 0.0, 0.0)  # (name, exclusive wall, exclusive cpu) of the section closed last
 
     @contextmanager
     def section(self, name: str):
@@ -59,6 +60,22 @@ class Profiler:
             entry["wall_s"] += wall - child_wall
             entry["cpu_s"] += cpu - child_cpu
             entry["calls"] += 1
+            self.last = (name, wall - child_wall, cpu - child_cpu)
+
+    def split_last(self, parts: dict[str, float]) -> None:
+        """Move the named wall seconds of the section that just closed into sections of their own
+        ("<section>: <part>"), with its CPU seconds shared in proportion."""
+        name, wall, cpu = self.last
+        sections = self.stages[self.stage]["sections"]
+        for part, seconds in parts.items():
+            seconds = min(seconds, sections[name]["wall_s"])
+            share = cpu * seconds / max(wall, 1e-12)
+            entry = sections.setdefault(f"{name}: {part}", {"wall_s": 0.0, "cpu_s": 0.0, "calls": 0})
+            entry["wall_s"] += seconds
+            entry["cpu_s"] += share
+            entry["calls"] += 1
+            sections[name]["wall_s"] -= seconds
+            sections[name]["cpu_s"] -= share
 
     @contextmanager
     def stage_scope(self, stage: str):
@@ -122,6 +139,26 @@ def _wrap(owner: Any, attribute: str, profiler: Profiler, name: str) -> None:
     setattr(owner, attribute, timed)
 
 
+def _wrap_forward(rasterizer_class: Any, profiler: Profiler) -> None:
+    """Time the rasterizer's forward with its own phase clock (project, sort, blend) split out."""
+    original = rasterizer_class.forward
+    if getattr(original, "_profiled", False):
+        return
+
+    @functools.wraps(original)
+    def forward(self, *args, **kwargs):
+        if kwargs.get("timings") is not None:
+            return original(self, *args, **kwargs)
+        parts: dict[str, float] = {}
+        with profiler.section("render forward"):
+            view = original(self, *args, timings=parts, **kwargs)
+        profiler.split_last(parts)
+        return view
+
+    forward._profiled = True  # type: ignore[attr-defined]
+    rasterizer_class.forward = forward
+
+
 def install(profiler: Profiler) -> None:
     """Wrap the stages' work functions with ``profiler``'s timers (for the rest of the process)."""
     from . import deblur_model, pipeline, refine_model
@@ -129,8 +166,8 @@ def install(profiler: Profiler) -> None:
     from .stages import deblur, divergence, refine
 
     profiler.sync = splat.sync
+    _wrap_forward(splat.Rasterizer, profiler)
     for owner, attribute, name in [
-        (splat.Rasterizer, "forward", "render forward"),
         (splat.Rasterizer, "backward", "render backward"),
         (losses, "l1", "losses (device)"), (losses, "dssim", "losses (device)"),
         (losses, "masked_depth_l1", "losses (device)"), (losses, "opacity_binarization", "losses (device)"),

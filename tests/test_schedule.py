@@ -61,3 +61,28 @@ def test_moving_the_scene_between_resolutions_keeps_gaussians_and_optimiser_stat
     frames, back = _phase(sequence, coarse, cache, 1)
     assert (back.width, back.height) == (64, 48) and frames is cache[1]
     assert _phase(sequence, back, cache, 1)[1] is back
+
+
+def _poses(shift_m: float, n: int = 3) -> np.ndarray:
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    poses[:, 0, 3] = shift_m
+    return poses
+
+
+def test_convergence_watch_stops_only_on_flat_loss_and_still_cameras_outside_quiet_windows():
+    from taichi_gs.stages.schedule import ConvergenceWatch
+
+    watch = ConvergenceWatch(window=4, rel_tol=0.01, pose_m=1e-3, pose_deg=0.1)
+    stops = [watch.update(it, 1.0, _poses(0.0)) for it in range(1, 13)]
+    assert stops == [False] * 7 + [True] + [False] * 3 + [True]  # first check only records the poses
+    moving = ConvergenceWatch(window=4, rel_tol=0.01, pose_m=1e-3, pose_deg=0.1)
+    assert not any(moving.update(it, 1.0, _poses(0.002 * it)) for it in range(1, 21))
+    assert moving.last_move[0] == pytest.approx(0.008)
+    falling = ConvergenceWatch(window=4, rel_tol=0.01, pose_m=1e-3, pose_deg=0.1)
+    assert not any(falling.update(it, 1.0 / it, _poses(0.0)) for it in range(1, 21))
+    reset = ConvergenceWatch(window=4, rel_tol=0.01, pose_m=1e-3, pose_deg=0.1)
+    reset.disturbed(4)
+    stops = [reset.update(it, 1.0, _poses(0.0)) for it in range(1, 17)]
+    assert stops.index(True) == 11  # iteration 12: two windows after the reset at 4
+    off = ConvergenceWatch(window=0, rel_tol=1.0, pose_m=1.0, pose_deg=1.0)
+    assert not any(off.update(it, 1.0, _poses(0.0)) for it in range(1, 20))
