@@ -472,9 +472,15 @@ def deblur(
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
     holdout: Annotated[Optional[str], typer.Option(metavar="N|none|sharpest", help="Hold out every N-th frame as a test view, 'none', or 'sharpest' (the sharpest of every N frames; for real data).")] = None,
+    profile: Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md (see reconstruct).")] = False,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
+    from . import profiling
     from .io.lock import output_lock
+
+    profiler = profiling.Profiler() if profile else None
+    if profiler is not None:
+        profiling.install(profiler)
     from .pipeline import open_run_sequence, resolve_sections, run_stage
     from .validation import validate_sections
 
@@ -490,6 +496,8 @@ def deblur(
     _init_backend()
     with output_lock(out):
         _, summary = run_stage("deblur", sequence, out, config, progress_bar)
+        if profiler is not None:
+            profiling.write(profiler, out)
     console.print(f"stage 3 done: {summary}; results in {out / 'deblur'}", highlight=False)
 
 
