@@ -14,6 +14,8 @@ def test_coarse_phase_covers_the_given_share_and_the_end_is_full_resolution():
     assert scales[:40] == [2] * 40 and scales[40:] == [1] * 60
     assert {training_scale(it, 100, 2, 2, 0.4) for it in range(40)} == {4}
     assert training_scale(99, 100, 2, 2, 1.0) == 4 and training_scale(0, 100, 1, 1, 0.9) == 1
+    levels = [training_scale(it, 90, 1, 4, 2 / 3) for it in range(90)]
+    assert levels == [4] * 30 + [2] * 30 + [1] * 30
 
 
 @pytest.mark.parametrize("span, step, k_min, k_max, expected", [

@@ -96,8 +96,8 @@ class DeblurConfig:
     fill_frames: int = 2
     fill_stride: int = 2
     grid_frames: int = 4
-    # [ours] coarse-to-fine: the first coarse_fraction of the iterations train at 1/coarse_scale of the
-    # training resolution (1 = off); the rest at full training resolution
+    # [ours] coarse-to-fine: the first coarse_fraction of the iterations train at 1/coarse_scale, then
+    # 1/(coarse_scale/2), ... 1/2 of the training resolution (equal shares; 1 = off), the rest at it
     coarse_scale: int = 1
     coarse_fraction: float = 0.0
     # [ours] k per exposure: each step renders the fewest views (k_min..k) whose neighbours lie at most

@@ -28,12 +28,17 @@ def scaled_intrinsics(K: np.ndarray, scale: int) -> np.ndarray:
 
 
 def training_scale(iteration: int, iterations: int, base_scale: int, coarse_scale: int, coarse_fraction: float) -> int:
-    """[ours] Coarse-to-fine: the resolution divisor at ``iteration``: ``base_scale * coarse_scale``
-    for the first ``coarse_fraction`` of the ``iterations``, ``base_scale`` after (the end is always
-    trained at the base resolution, so Gaussians too small for the coarse pixels are corrected)."""
-    if coarse_scale > 1 and iteration < int(round(coarse_fraction * iterations)):
-        return base_scale * coarse_scale
-    return base_scale
+    """[ours] Coarse-to-fine: the resolution divisor at ``iteration``. The first ``coarse_fraction``
+    of the ``iterations`` is split evenly into levels ``coarse_scale``, ``coarse_scale // 2``, ... down
+    to 2 (times ``base_scale``); the rest trains at ``base_scale`` (the end is always at the base
+    resolution, so Gaussians too small for the coarse pixels are corrected)."""
+    coarse = int(round(coarse_fraction * iterations))
+    if coarse_scale <= 1 or iteration >= coarse:
+        return base_scale
+    levels = [coarse_scale]
+    while levels[-1] // 2 >= 2:
+        levels.append(levels[-1] // 2)
+    return base_scale * levels[min(iteration * len(levels) // coarse, len(levels) - 1)]
 
 
 def views_for_span(span_px: float, max_step_px: float, k_min: int, k_max: int) -> int:
