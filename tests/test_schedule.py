@@ -88,3 +88,45 @@ def test_convergence_watch_stops_only_on_flat_loss_and_still_cameras_outside_qui
     assert stops.index(True) == 11  # iteration 12: two windows after the reset at 4
     off = ConvergenceWatch(window=0, rel_tol=1.0, pose_m=1.0, pose_deg=1.0)
     assert not any(off.update(it, 1.0, _poses(0.0)) for it in range(1, 20))
+
+
+def test_coarse_to_fine_with_k_per_exposure_deblurs_held_out_views_at_full_size(tmp_path):
+    import dataclasses
+
+    import cv2
+    from synthetic_refine import write_refine_outputs
+
+    from taichi_gs.evaluate import psnr
+    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.stages import deblur
+
+    synth = pytest.importorskip("taichi_gs.synth")
+    synth.generate(synth.SynthConfig(width=96, height=72, frames=9, trajectory="handheld", blur="extreme", seed=1),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    out = tmp_path / "out"
+    write_refine_outputs(sequence, out, voxel=0.05)
+    config = dataclasses.replace(deblur.PRESETS["fast"], k=7, iterations=200, densify_from=100, densify_until=150,
+                                 exposure_from=60, test_pose_iterations=10, checkpoint_every=100, coarse_scale=2,
+                                 coarse_fraction=0.5, adaptive_k=True, k_min=3)
+    ks: list[int] = []
+    original = deblur.BlurScene.step
+
+    def spy(self, *args, **kwargs):
+        ks.append((self.width, args[5]))
+        return original(self, *args, **kwargs)
+
+    deblur.BlurScene.step = spy
+    try:
+        result = deblur.run_deblur(sequence, out, config)
+    finally:
+        deblur.BlurScene.step = original
+    assert {w for w, _ in ks[:100]} == {48} and {w for w, _ in ks[100:200]} == {96}
+    assert {w for w, _ in ks[200:]} == {96}  # test-time exposure fits at full size
+    assert all(3 <= k <= 7 for _, k in ks) and len({k for _, k in ks}) > 1
+    assert np.mean([k for _, k in ks[:100]]) < np.mean([k for _, k in ks[100:200]])  # fewer views when coarse
+    for i in result.test:
+        ours = cv2.cvtColor(cv2.imread(str(out / "deblur" / "renders" / "sharp" / f"{sequence.names[i]}.png")),
+                            cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+        assert ours.shape == (72, 96, 3)
+        assert psnr(ours, sequence.sharp(i)) > psnr(sequence.color(i), sequence.sharp(i))
