@@ -125,6 +125,15 @@ class Profiler:
         return "\n".join(lines)
 
 
+_INSTALLED: list[tuple[Any, str, Any]] = []  # (owner, attribute, original) of every wrapped function
+
+
+def _replace(owner: Any, attribute: str, wrapper: Any) -> None:
+    _INSTALLED.append((owner, attribute, getattr(owner, attribute)))
+    wrapper._profiled = True
+    setattr(owner, attribute, wrapper)
+
+
 def _wrap(owner: Any, attribute: str, profiler: Profiler, name: str) -> None:
     original = getattr(owner, attribute)
     if getattr(original, "_profiled", False):
@@ -135,8 +144,7 @@ def _wrap(owner: Any, attribute: str, profiler: Profiler, name: str) -> None:
         with profiler.section(name):
             return original(*args, **kwargs)
 
-    timed._profiled = True  # type: ignore[attr-defined]
-    setattr(owner, attribute, timed)
+    _replace(owner, attribute, timed)
 
 
 def _wrap_forward(rasterizer_class: Any, profiler: Profiler) -> None:
@@ -155,8 +163,7 @@ def _wrap_forward(rasterizer_class: Any, profiler: Profiler) -> None:
         profiler.split_last(parts)
         return view
 
-    forward._profiled = True  # type: ignore[attr-defined]
-    rasterizer_class.forward = forward
+    _replace(rasterizer_class, "forward", forward)
 
 
 def install(profiler: Profiler) -> None:
@@ -197,8 +204,14 @@ def install(profiler: Profiler) -> None:
             with profiler.stage_scope(stage):
                 return original_run_stage(stage, *args, **kwargs)
 
-        run_stage._profiled = True  # type: ignore[attr-defined]
-        pipeline.run_stage = run_stage
+        _replace(pipeline, "run_stage", run_stage)
+
+
+def uninstall() -> None:
+    """Put back every function :func:`install` wrapped."""
+    while _INSTALLED:
+        owner, attribute, original = _INSTALLED.pop()
+        setattr(owner, attribute, original)
 
 
 def write(profiler: Profiler, folder: Path) -> tuple[Path, Path]:

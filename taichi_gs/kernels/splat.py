@@ -341,8 +341,9 @@ def camera_args(camera: Camera, dtype) -> tuple:
 
 
 def sync() -> None:
-    """Wait for every launched kernel to finish (for timers)."""
-    ti.sync()
+    """Wait for every launched kernel to finish (for timers); nothing before the runtime starts."""
+    if runtime.current() is not None:
+        ti.sync()
 
 
 class _PhaseClock:
