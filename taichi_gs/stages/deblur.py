@@ -104,8 +104,6 @@ class DeblurConfig:
     # max_step_px apart at the resolution trained (the 1 px rule per frame and phase); off: always k
     adaptive_k: bool = False
     k_min: int = 3
-    # [ours] the test-time exposure fits run at 1/test_pose_scale of the training resolution (1: at it)
-    test_pose_scale: int = 1
 
 
 PRESETS = {
@@ -382,7 +380,7 @@ def run_deblur(
             _save_checkpoint(checkpoint, it + 1, config, model, exposure_adam, offsets, rng, history, colours, colour_adam)
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
-    frames, model = _phase(sequence, model, phase, config.resolution_scale * config.test_pose_scale)
+    frames, model = _phase(sequence, model, phase, config.resolution_scale)
     for frame in test:
         offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
                                                                frame, config)
