@@ -130,3 +130,28 @@ def test_coarse_to_fine_with_k_per_exposure_deblurs_held_out_views_at_full_size(
                             cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
         assert ours.shape == (72, 96, 3)
         assert psnr(ours, sequence.sharp(i)) > psnr(sequence.color(i), sequence.sharp(i))
+
+
+def test_stage2_stops_at_the_first_converged_check_and_still_writes_its_outputs(tmp_path):
+    import dataclasses
+
+    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.trajectory import read_tum
+    from taichi_gs.stages.pose import PoseConfig, fuse_points
+    from taichi_gs.stages.refine import PRESETS, run_refine
+
+    synth = pytest.importorskip("taichi_gs.synth")
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=6, seed=3), tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    poses = np.linalg.inv(sequence.gt_poses[0]) @ sequence.gt_poses
+    points, colors = fuse_points(sequence, poses, PoseConfig(voxel_size_m=0.05))
+    config = dataclasses.replace(PRESETS["fast"], voxel_size=0.05, iterations_per_frame=40, converge_window_per_frame=5,
+                                 converge_rel_tol=1.0, converge_pose_m=1.0, converge_pose_deg=90.0)
+    result = run_refine(sequence, poses, points, colors, tmp_path / "run", config)
+    # watch starts after the 24-iteration warm-up; checks every 30: 30 records poses, 60 has 36 losses
+    # (< 2 windows), 90 stops
+    assert result.iterations == 90 < 240
+    assert np.allclose(read_tum(tmp_path / "run" / "refine" / "trajectory.txt")[1], result.poses, atol=1e-5)
+    capped = run_refine(sequence, poses, points, colors, tmp_path / "cap",
+                        dataclasses.replace(config, converge_window_per_frame=0))
+    assert capped.iterations == 240
