@@ -367,8 +367,11 @@ def reconstruct(
     trust_depth_scale: TrustDepthOption = False,
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
+    profile: Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md: wall and "
+                                          "CPU seconds per stage and per kind of work (renders, losses, ...).")] = False,
 ) -> None:
     """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
+    from . import profiling
     from .io.lock import output_lock
     from .pipeline import reconstruct as run_all
     from .pipeline import resolve_sections
@@ -384,8 +387,14 @@ def reconstruct(
         verb = "done" if stage.ran else "already done, skipped"
         console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
 
+    profiler = profiling.Profiler() if profile else None
+    if profiler is not None:
+        profiling.install(profiler)
     with output_lock(out):
         run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report)
+        if profiler is not None:
+            paths = profiling.write(profiler, out)
+            console.print(f"profile: {paths[1]}", highlight=False)
     console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 
@@ -464,11 +473,17 @@ def deblur(
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
     holdout: Annotated[Optional[str], typer.Option(metavar="N|none|sharpest", help="Hold out every N-th frame as a test view, 'none', or 'sharpest' (the sharpest of every N frames; for real data).")] = None,
+    profile: Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md (see reconstruct).")] = False,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
+    from . import pipeline, profiling
     from .io.lock import output_lock
-    from .pipeline import open_run_sequence, resolve_sections, run_stage
+    from .pipeline import open_run_sequence, resolve_sections
     from .validation import validate_sections
+
+    profiler = profiling.Profiler() if profile else None
+    if profiler is not None:
+        profiling.install(profiler)
 
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
     changes: dict[str, int | str] = {} if k is None else {"k": k}
@@ -481,7 +496,9 @@ def deblur(
     sequence = open_run_sequence(out)
     _init_backend()
     with output_lock(out):
-        summary = run_stage("deblur", sequence, out, config, progress_bar)
+        summary = pipeline.run_stage("deblur", sequence, out, config, progress_bar)  # --profile wraps it
+        if profiler is not None:
+            profiling.write(profiler, out)
     console.print(f"stage 3 done: {summary}; results in {out / 'deblur'}", highlight=False)
 
 

@@ -79,6 +79,8 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "pose_warmup_fraction": FRACTION, "resolution_scale": COUNT, "checkpoint_every": COUNT,
         "max_depth": NON_NEGATIVE, "edge_ratio": NON_NEGATIVE, "edge_radius": OPTIONAL_COUNT,
         "pose_prior_weight": NON_NEGATIVE, "pose_prior_sigma_m": POSITIVE, "pose_prior_sigma_deg": POSITIVE,
+        "converge_window_per_frame": OPTIONAL_COUNT, "converge_rel_tol": NON_NEGATIVE,
+        "converge_pose_m": NON_NEGATIVE, "converge_pose_deg": NON_NEGATIVE,
     },
     "deblur": {
         "k": COUNT, "holdout_every": ((lambda v: v == 0 or v >= 2), "0 (no test views) or at least 2"),
@@ -90,6 +92,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "test_pose_iterations": OPTIONAL_COUNT, "resolution_scale": COUNT, "checkpoint_every": COUNT,
         "grid_frames": OPTIONAL_COUNT, "holdout": _one_of("every", "sharpest"), "lambda_colour_affine": NON_NEGATIVE,
         "iterations_per_view": OPTIONAL_COUNT, "fill_frames": COUNT, "fill_stride": COUNT,
+        "coarse_scale": COUNT, "coarse_fraction": FRACTION, "k_min": COUNT,
     },
 }
 

@@ -402,6 +402,12 @@ def camera_args(camera: Camera, dtype) -> tuple:
     return cam, intr
 
 
+def sync() -> None:
+    """Wait for every launched kernel to finish (for timers); nothing before the runtime starts."""
+    if runtime.current() is not None:
+        ti.sync()
+
+
 class _PhaseClock:
     """Adds synchronised wall time per phase into a dict; does nothing without one."""
 

@@ -44,7 +44,7 @@ from . import checkpoint
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .divergence import DivergenceGuard
 from .row_adam import RowAdam
-from .schedule import downsample_depth, exp_decay, scaled_intrinsics
+from .schedule import ConvergenceWatch, downsample_depth, exp_decay, scaled_intrinsics
 
 
 PARAMETER_CHECK_EVERY = 50  # iterations between divergence checks of the parameters (a device copy)
@@ -87,6 +87,14 @@ class RefineConfig:
     max_depth: float = 0.0  # ignore input depth beyond this (0 = keep all)
     edge_ratio: float = 0.05  # ignore input depth within edge_radius px of a relative step above this (0 = keep)
     edge_radius: int = 2
+    # [ours] stop when converged: every converge_window_per_frame x N iterations (0 = off: the fixed
+    # count), stop once the window's mean depth L1 changed by at most converge_rel_tol of the window
+    # before and no camera moved more than converge_pose_m / converge_pose_deg since the last check
+    # (never within two windows after an opacity reset); iterations_per_frame stays the cap
+    converge_window_per_frame: int = 0
+    converge_rel_tol: float = 0.02
+    converge_pose_m: float = 0.0005
+    converge_pose_deg: float = 0.05
 
 
 PRESETS = {
@@ -102,6 +110,7 @@ class RefineResult:
     loss_history: list[dict[str, float]]
     gaussians: int
     seconds_per_iteration: float
+    iterations: int = 0  # iterations run in all (below the cap when the convergence stop ended it)
 
 
 def _without_edges(depth: np.ndarray, ratio: float, radius: int) -> np.ndarray:
@@ -186,6 +195,8 @@ def run_refine(
     centre = points.mean(axis=0)
     guard = DivergenceGuard("stage 2 (refine)", centre, max(extent, float(np.linalg.norm(points - centre, axis=1).max())))
     views = min(config.views_per_step, n_frames)
+    watch = _convergence_watch(config, n_frames)
+    done = total
     t0 = time.perf_counter()
     for it in range(start_iteration, total):
         fraction = it / max(total - 1, 1)
@@ -208,6 +219,7 @@ def run_refine(
             model.prune(config.prune_opacity)
         if (it + 1) % reset_every == 0 and it + 1 < total:
             model.reset_opacity(config.initial_opacity)
+            watch.disturbed(it + 1)
         if progress is not None:
             progress(it + 1, total, depth_l1=losses["depth"], gaussians=model.count)
         if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 or it == total - 1:
@@ -216,11 +228,20 @@ def run_refine(
             checkpoint.save(checkpoint_path, it + 1, config,
                             {"poses": poses, **pose_adam.state("pose"), **checkpoint.prefixed("model", model.state())},
                             {"history": history})
-    seconds = (time.perf_counter() - t0) / max(total - start_iteration, 1)
+        if fraction >= config.pose_warmup_fraction and watch.update(it + 1, losses["depth"], poses):
+            done = it + 1
+            break
+    seconds = (time.perf_counter() - t0) / max(done - start_iteration, 1)
 
     _write_outputs(stage_dir, sequence, poses, model, colors, splats, config, history)
     checkpoint_path.unlink(missing_ok=True)
-    return RefineResult(poses, history, model.count, seconds)
+    return RefineResult(poses, history, model.count, seconds, done)
+
+
+def _convergence_watch(config: RefineConfig, n_frames: int) -> ConvergenceWatch:
+    """[ours] The convergence stop of the schedule (window 0: never stops before the cap)."""
+    return ConvergenceWatch(config.converge_window_per_frame * n_frames, config.converge_rel_tol,
+                            config.converge_pose_m, config.converge_pose_deg)
 
 
 def _training_depths(sequence: Sequence, config: RefineConfig) -> tuple[np.ndarray, list[np.ndarray]]:
