@@ -79,6 +79,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "pose_warmup_fraction": FRACTION, "resolution_scale": COUNT, "checkpoint_every": COUNT,
         "max_depth": NON_NEGATIVE, "edge_ratio": NON_NEGATIVE, "edge_radius": OPTIONAL_COUNT,
         "pose_prior_weight": NON_NEGATIVE, "pose_prior_sigma_m": POSITIVE, "pose_prior_sigma_deg": POSITIVE,
+        "accept_neighbours": OPTIONAL_COUNT,
     },
     "deblur": {
         "k": COUNT, "holdout_every": ((lambda v: v == 0 or v >= 2), "0 (no test views) or at least 2"),
