@@ -81,6 +81,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "pose_prior_weight": NON_NEGATIVE, "pose_prior_sigma_m": POSITIVE, "pose_prior_sigma_deg": POSITIVE,
         "converge_window_per_frame": OPTIONAL_COUNT, "converge_rel_tol": NON_NEGATIVE,
         "converge_pose_m": NON_NEGATIVE, "converge_pose_deg": NON_NEGATIVE,
+        "accept_neighbours": OPTIONAL_COUNT,
     },
     "deblur": {
         "k": COUNT, "holdout_every": ((lambda v: v == 0 or v >= 2), "0 (no test views) or at least 2"),

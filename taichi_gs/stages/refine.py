@@ -14,7 +14,11 @@ Our choices, each measured against ground truth (bench/refine.py, tests/test_ref
 - input depth next to depth steps is ignored: a splat render smears edges over its footprint;
 - each pose takes Adam steps on a camera-frame twist (translation along the camera axes, rotation
   about its centre) with per-component rates in metres and radians, exponentially decayed, and
-  stays fixed for a short warm-up while opacities settle.
+  stays fixed for a short warm-up while opacities settle; the step starts at 0.1 mm, below stage 1's
+  error, because Adam's normalised step makes a pose wander by about the learning rate along the
+  directions depth alone does not constrain (issue 11: 1 cm steps moved exact poses 2-5 mm);
+- the refined trajectory is kept only if stage 1's depth + colour verification score of its
+  relative poses is no worse than the initial poses' (stages/refine_accept.py).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ from ..splats import splats_from_points
 from . import checkpoint
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .divergence import DivergenceGuard
+from .refine_accept import accept_refined_poses
 from .row_adam import RowAdam
 from .schedule import ConvergenceWatch, downsample_depth, exp_decay, scaled_intrinsics
 
@@ -71,8 +76,12 @@ class RefineConfig:
     free_scale: bool = False  # ablation: also train anisotropic scales and rotations
     lr_log_scales: float = 0.005
     lr_quats: float = 0.001
-    lr_pose: float = 1e-2  # translation step (m) of the per-frame Adam; decayed to lr_pose_final
-    lr_pose_final: float = 1e-5
+    # [ours] translation step (m) of the per-frame Adam, decayed to lr_pose_final. Adam moves each component by about
+    # lr per step whatever the gradient's size, so lr sets how far a pose wanders on the depth loss's flat directions:
+    # it must start below the error of the poses it refines. Stage 1's verified, graph-optimised poses are at the
+    # millimetre level, hence 0.1 mm (1e-2, the earlier default, moved exact poses 2-5 mm; raise it for poor starts).
+    lr_pose: float = 1e-4
+    lr_pose_final: float = 1e-6
     pose_rotation_per_m: float = 0.5  # rotation lr (rad) per translation lr (m): ~1 / scene depth
     pose_warmup_fraction: float = 0.1  # poses stay fixed for this first part of the schedule
     # [ours] pose prior: + w/2 (|e_t / sigma_t|^2 + |e_r / sigma_r|^2), e = log(initial^-1 pose) in the camera
@@ -81,6 +90,10 @@ class RefineConfig:
     pose_prior_weight: float = 0.0
     pose_prior_sigma_m: float = 0.003
     pose_prior_sigma_deg: float = 0.1
+    # [ours] acceptance test (stages/refine_accept.py): the refined trajectory is kept only if stage 1's depth + colour
+    # verification score, averaged over every (i, j) with 0 < i - j <= accept_neighbours, is not higher than for the
+    # initial poses; otherwise those are returned. 0 = off (the method: the refined poses are always kept).
+    accept_neighbours: int = 3
     resolution_scale: int = 1  # render at 1/scale of the input resolution
     seed: int = 0
     checkpoint_every: int = 500
@@ -232,6 +245,7 @@ def run_refine(
             done = it + 1
             break
     seconds = (time.perf_counter() - t0) / max(done - start_iteration, 1)
+    poses = _accepted_poses(sequence, initial_poses, poses, config, stage_dir)
 
     _write_outputs(stage_dir, sequence, poses, model, colors, splats, config, history)
     checkpoint_path.unlink(missing_ok=True)
@@ -242,6 +256,17 @@ def _convergence_watch(config: RefineConfig, n_frames: int) -> ConvergenceWatch:
     """[ours] The convergence stop of the schedule (window 0: never stops before the cap)."""
     return ConvergenceWatch(config.converge_window_per_frame * n_frames, config.converge_rel_tol,
                             config.converge_pose_m, config.converge_pose_deg)
+
+
+def _accepted_poses(sequence: Sequence, initial_poses: np.ndarray, poses: np.ndarray, config: RefineConfig,
+                    stage_dir: Path) -> np.ndarray:
+    """[ours] The refined poses if they pass the acceptance test, else the initial ones; the scores go to
+    ``stage_dir/acceptance.json``. Unchanged when ``accept_neighbours`` is 0."""
+    if config.accept_neighbours <= 0:
+        return poses
+    chosen, acceptance = accept_refined_poses(sequence, initial_poses, poses, config.accept_neighbours)
+    write_text(stage_dir / "acceptance.json", jsonout.dumps(acceptance.to_dict()) + "\n")
+    return chosen
 
 
 def _training_depths(sequence: Sequence, config: RefineConfig) -> tuple[np.ndarray, list[np.ndarray]]:
