@@ -105,12 +105,6 @@ class DepthRefiner:
         depth, coverage = (float(np.mean([r[k] for r in results])) for k in (0, 1))
         return {"depth": depth, "coverage": coverage, "opacity": opacity / max(n, 1)}, [r[2] for r in results]
 
-    def depth_error(self, target_depth: np.ndarray, cam_to_world: np.ndarray) -> float:
-        """The alpha-normalised masked depth L1 (m) at a camera, without training."""
-        view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height))
-        return depth_losses(view.depth.to_numpy(), view.transmittance.to_numpy(), target_depth,
-                            self.min_alpha, 1.0, 0.0)[0]
-
     def params(self) -> dict[str, np.ndarray]:
         """The trained parameters of the live Gaussians as NumPy."""
         return {name: self.store.array(name) for name in self.trained}
