@@ -20,6 +20,7 @@ import taichi as ti
 
 from .project import (
     ALPHA_MIN,
+    N_GRADS,
     P_COLOR,
     P_CONIC_A,
     P_CONIC_B,
@@ -42,7 +43,7 @@ E_WIDTH = P_WIDTH + 4
 MAX_ALPHA = 0.99
 MIN_TRANSMITTANCE = 1e-4
 # Columns of a slot's gradient record (same order as the projection's screen record).
-N_SLOT_GRADS = 10
+N_SLOT_GRADS = N_GRADS
 # Per-pixel forward state: transmittance (negated once finished), colour, depth, last contributor.
 F_TRANS, F_RGB, F_DEPTH, F_LAST = 0, 1, 4, 5
 F_WIDTH = 6
@@ -233,20 +234,20 @@ def make(dt) -> SimpleNamespace:
                                     + state[v, u, B_GRAD + 4] * final_trans * inv_keep
                                 )
                                 for c in ti.static(range(3)):
-                                    acc[7 + c] += g_rgb[c] * w
+                                    acc[P_COLOR + c] += g_rgb[c] * w
                                     state[v, u, B_BEHIND + c] = behind[c] + color[c] * w
-                                acc[5] += g_depth * w
+                                acc[P_DEPTH] += g_depth * w
                                 state[v, u, B_BEHIND + 3] = behind_depth + depth * w
                                 state[v, u, B_TRANS] = trans
                                 if opacity * gauss <= dt(MAX_ALPHA):
-                                    acc[6] += g_alpha * gauss
+                                    acc[P_OPACITY] += g_alpha * gauss
                                     g_power = g_alpha * alpha
                                     dx, dy = s[1], s[2]
-                                    acc[0] += -g_power * (ca * dx + cb * dy)
-                                    acc[1] += -g_power * (cb * dx + cc * dy)
-                                    acc[2] += -0.5 * g_power * dx * dx
-                                    acc[3] += -g_power * dx * dy
-                                    acc[4] += -0.5 * g_power * dy * dy
+                                    acc[P_MEAN_X] += -g_power * (ca * dx + cb * dy)
+                                    acc[P_MEAN_Y] += -g_power * (cb * dx + cc * dy)
+                                    acc[P_CONIC_A] += -0.5 * g_power * dx * dx
+                                    acc[P_CONIC_B] += -g_power * dx * dy
+                                    acc[P_CONIC_C] += -0.5 * g_power * dy * dy
             slot = order[j]
             for c in ti.static(range(N_SLOT_GRADS)):
                 slot_grad[slot, c] = acc[c]
