@@ -185,28 +185,24 @@ class BlurScene:
     def _moments(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         return {name: (m.to_numpy()[: self.count], v.to_numpy()[: self.count]) for name, (m, v) in self.adam.moments.items()}
 
-    def densify_and_prune(self, grad_threshold_px: float, split_scale: float, min_opacity: float, max_scale: float,
-                          max_gaussians: int, rng: np.random.Generator) -> tuple[int, int]:
+    def densify_and_prune(self, grad_threshold_px: float, split_scale: float | np.ndarray, min_opacity: float,
+                          max_scale: float, max_gaussians: int, rng: np.random.Generator) -> tuple[int, int]:
         """3DGS's adaptive density control: Gaussians whose mean image-plane positional gradient
-        exceeds ``grad_threshold_px`` are cloned (largest scale <= ``split_scale``, metres) or split
-        in two samples of themselves with scales / 1.6; then those with opacity < ``min_opacity`` or
-        a scale > ``max_scale`` are dropped. Never grows past ``max_gaussians``. Returns (added, removed)."""
+        exceeds ``grad_threshold_px`` are cloned (largest scale <= ``split_scale``, metres; one value
+        or one per Gaussian) or split in two samples of themselves with scales / 1.6; then those with
+        opacity < ``min_opacity`` or a scale > ``max_scale`` are dropped. Never grows past
+        ``max_gaussians``. Returns (added, removed)."""
         a, moments = self.arrays(), self._moments()
         mean_grad = self.grad_sum / np.maximum(self.grad_count, 1)
         grow = np.flatnonzero(mean_grad > grad_threshold_px)
         room = max(max_gaussians - self.count, 0)
         if len(grow) > room:
             grow = grow[np.argsort(-mean_grad[grow])[:room]]
-        big = a["log_scales"][grow].max(axis=1) > np.log(split_scale)
+        limit = np.broadcast_to(np.asarray(split_scale, np.float64), (self.count,))[grow]
+        big = a["log_scales"][grow].max(axis=1) > np.log(limit)
         split, clone = grow[big], grow[~big]
         new = {name: np.concatenate([a[name][clone], a[name][split]]) for name in TRAINED}
-        if len(split):
-            scales = np.exp(a["log_scales"][split])
-            offsets = np.einsum("nij,nj->ni", quat_to_rotmat(a["quats"][split]), rng.normal(size=scales.shape) * scales)
-            new["means"][len(clone):] += offsets
-            a["means"][split] -= offsets
-            new["log_scales"][len(clone):] -= np.log(1.6)
-            a["log_scales"][split] -= np.log(1.6)
+        _split_in_two(a, new, split, len(clone), rng)
         merged = {name: np.concatenate([a[name], new[name]]) for name in TRAINED}
         keep = (merged["opacity_logits"] >= logit(min_opacity)) & (merged["log_scales"].max(axis=1) <= np.log(max_scale))
         added = len(grow)
@@ -216,6 +212,31 @@ class BlurScene:
         self.grad_sum = np.zeros(self.count)
         self.grad_count = np.zeros(self.count)
         return added, int((~keep).sum())
+
+    def split_oversized(self, max_scale: np.ndarray, max_gaussians: int, rng: np.random.Generator) -> int:
+        """Split (3DGS's split: two samples, scales / 1.6) every Gaussian whose largest scale exceeds
+        its ``max_scale`` (metres, one per Gaussian), repeatedly until none does or ``max_gaussians``
+        is reached (the largest relative to their limit first). Adam moments of the children start
+        at 0. Returns how many Gaussians were added."""
+        added = 0
+        limit = np.asarray(max_scale, np.float64)
+        while True:
+            a, moments = self.arrays(), self._moments()
+            excess = a["log_scales"].max(axis=1) - np.log(limit)
+            split = np.flatnonzero(excess > 0)
+            split = split[np.argsort(-excess[split])[: max(max_gaussians - self.count, 0)]]
+            if len(split) == 0:
+                return added
+            new = {name: a[name][split].copy() for name in TRAINED}
+            _split_in_two(a, new, split, 0, rng)
+            merged = {name: np.concatenate([a[name], new[name]]) for name in TRAINED}
+            moments = {name: tuple(np.concatenate([mv, np.zeros_like(new[name], dtype=mv.dtype)]) for mv in moments[name])
+                       for name in TRAINED}
+            self._build(merged, moments, self.adam.t)
+            limit = np.concatenate([limit, limit[split]])
+            added += len(split)
+            self.grad_sum = np.zeros(self.count)
+            self.grad_count = np.zeros(self.count)
 
     def reset_opacity(self, opacity: float) -> None:
         """Clamp every opacity to at most ``opacity`` and forget its Adam moments (3DGS's reset)."""
@@ -236,6 +257,30 @@ class BlurScene:
         moments = {name: (state[f"m_{name}"], state[f"v_{name}"]) for name in TRAINED}
         self._build({name: state[f"p_{name}"] for name in TRAINED}, moments, int(state["adam_t"]))
         self.grad_sum, self.grad_count = state["grad_sum"].copy(), state["grad_count"].copy()
+
+
+def _split_in_two(a: dict[str, np.ndarray], new: dict[str, np.ndarray], split: np.ndarray, first: int,
+                  rng: np.random.Generator) -> None:
+    """3DGS's split, in place: Gaussian ``split[j]`` of ``a`` and its copy at row ``first + j`` of ``new``
+    move apart by +-one sample of the Gaussian (rotated, scaled noise) and shrink by 1.6."""
+    if len(split) == 0:
+        return
+    scales = np.exp(a["log_scales"][split])
+    offsets = np.einsum("nij,nj->ni", quat_to_rotmat(a["quats"][split]), rng.normal(size=scales.shape) * scales)
+    rows = slice(first, first + len(split))
+    new["means"][rows] += offsets
+    a["means"][split] -= offsets
+    new["log_scales"][rows] -= np.log(1.6)
+    a["log_scales"][split] -= np.log(1.6)
+
+
+def footprint_limit(means: np.ndarray, centres: np.ndarray, focal: float, pixels: float) -> np.ndarray:
+    """Per Gaussian, the world size (metres) that ``pixels`` pixels span at its distance from the
+    nearest camera centre (``centres`` (N, 3), ``focal`` in pixels)."""
+    nearest = np.full(len(means), np.inf)
+    for c in np.asarray(centres, np.float64):
+        nearest = np.minimum(nearest, np.linalg.norm(np.asarray(means, np.float64) - c, axis=1))
+    return pixels * np.maximum(nearest, 1e-6) / focal
 
 
 def _as_arrays(splats: Splats) -> dict[str, np.ndarray]:

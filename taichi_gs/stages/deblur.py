@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..deblur_model import BlurScene, Rates
+from ..deblur_model import BlurScene, Rates, footprint_limit
 from ..errors import InputError
 from ..geometry import invert, se3_log
 from ..io.atomic import atomic_path, write_text
@@ -95,6 +95,12 @@ class DeblurConfig:
     fill_uncovered: bool = False
     fill_frames: int = 2
     fill_stride: int = 2
+    # [ours] splat footprint: before training, split Gaussians wider (largest sigma) than init_max_px
+    # pixels at the training resolution, seen from the nearest training camera (stage 2's fixed-size
+    # Gaussians are wider than the blur at 320x240); during densification, split instead of clone
+    # those wider than split_px pixels (0 = off: 3DGS's world-size rule split_scale alone)
+    init_max_px: float = 0.0
+    split_px: float = 0.0
     grid_frames: int = 4
 
 
@@ -317,6 +323,10 @@ def run_deblur(
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
     model = BlurScene(splats, frames.K, width, height)
+    centres = poses[train, :3, 3]
+    if config.init_max_px > 0:
+        model.split_oversized(footprint_limit(model.arrays()["means"], centres, frames.K[0, 0], config.init_max_px),
+                              config.max_gaussians, np.random.default_rng([config.seed, 1]))
     start = initial_offsets(poses, config.initial_exposure_fraction)
     offsets = start.copy()
     exposure_adam = ExposureAdam(len(sequence))
@@ -353,7 +363,7 @@ def run_deblur(
             + config.lambda_depth * step.losses["depth"]
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
-        _adapt_density(model, it + 1, config, extent, rng)
+        _adapt_density(model, it + 1, config, extent, rng, centres, frames.K[0, 0])
         if config.fill_uncovered and _densifies(it + 1, config):
             for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
                 fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
@@ -425,12 +435,17 @@ def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_t
     return len(v)
 
 
-def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: float, rng: np.random.Generator) -> None:
+def _adapt_density(model: BlurScene, done: int, config: DeblurConfig, extent: float, rng: np.random.Generator,
+                   centres: np.ndarray, focal: float) -> None:
     """3DGS's schedule: densify and prune every ``densify_every`` iterations in the densification
-    window; reset opacities every ``reset_opacity_every`` iterations inside it."""
+    window; reset opacities every ``reset_opacity_every`` iterations inside it. With ``split_px``,
+    Gaussians wider than that many pixels from the nearest camera (``centres``) are split too."""
     if _densifies(done, config):
+        split_scale = config.split_scale * extent
+        if config.split_px > 0:
+            split_scale = np.minimum(split_scale, footprint_limit(model.arrays()["means"], centres, focal, config.split_px))
         # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
-        model.densify_and_prune(config.densify_grad * 2.0 / model.width, config.split_scale * extent,
+        model.densify_and_prune(config.densify_grad * 2.0 / model.width, split_scale,
                                 config.prune_opacity, config.prune_scale * extent, config.max_gaussians, rng)
     if config.reset_opacity_every and done % config.reset_opacity_every == 0 and done < config.densify_until:
         model.reset_opacity(0.01)
