@@ -367,7 +367,8 @@ def run_deblur(
         if config.fill_uncovered and _densifies(it + 1, config):
             for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
                 fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
-                               frames.K, config.fill_stride, config.max_gaussians, rng)
+                               frames.K, config.fill_stride, config.max_gaussians, rng,
+                               min(config.fill_stride, config.split_px or config.fill_stride))
         if progress is not None:
             progress(it + 1, config.iterations, loss=loss, psnr=step.psnr, gaussians=model.count)
         if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 \
@@ -412,10 +413,11 @@ def nearest_filled(depth: np.ndarray) -> np.ndarray:
 
 
 def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_to_world: np.ndarray, K: np.ndarray,
-                   stride: int, max_gaussians: int, rng: np.random.Generator) -> int:
+                   stride: int, max_gaussians: int, rng: np.random.Generator, radius_px: float | None = None) -> int:
     """Add Gaussians where the render of a view has alpha < 0.5: one per ``stride`` pixels (a random
     phase), coloured by the input, at the sensor depth, else the scene's rendered depth (alpha >= 0.5),
-    else the nearest pixel's such depth; radius (sigma) the stride's footprint. Returns how many."""
+    else the nearest pixel's such depth; radius (sigma) ``radius_px`` pixels' footprint (default: the
+    stride). Returns how many."""
     rendered, alpha = model.coverage(cam_to_world)
     known = np.where(depth > 0, depth, np.where(alpha >= 0.5, rendered, 0.0))
     grid = np.zeros(alpha.shape, bool)
@@ -431,7 +433,7 @@ def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_t
     z = nearest_filled(known)[v, u].astype(np.float64)
     points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
     model.add_gaussians(points @ cam_to_world[:3, :3].T + cam_to_world[:3, 3], color[v, u],
-                        stride * z / K[0, 0], opacity=0.5)
+                        (radius_px or stride) * z / K[0, 0], opacity=0.5)
     return len(v)
 
 
