@@ -14,6 +14,7 @@ time against its own blurred frame (scene frozen). Methods:
 - ours: the stage as configured (fast preset, with the sizes given on the command line)
 - ours + colour affine / fill uncovered / epochs / all: the real-data options (DeblurConfig
   colour_affine, fill_uncovered, epoch_sampling) switched on
+- ours + init split / split px / footprint: DeblurConfig init_max_px / split_px = 1 px, and both
 Prints a Markdown table: PSNR (dB), SSIM, inverse-depth RMSE (1/m; against the exact ray-cast
 depth at the ground-truth mid pose) over the test views, and seconds per training iteration.
 """
@@ -41,7 +42,10 @@ METHODS = {"k = 1 fit (no blur model)": {"k": 1}, "ours no-depth": {"lambda_dept
            # the real-data options of stage 3, each alone and together (ablation on synthetic data)
            "ours + colour affine": {"colour_affine": True}, "ours + fill uncovered": {"fill_uncovered": True},
            "ours + epochs": {"epoch_sampling": True},
-           "ours + all": {"colour_affine": True, "fill_uncovered": True, "epoch_sampling": True}}
+           "ours + all": {"colour_affine": True, "fill_uncovered": True, "epoch_sampling": True},
+           # splat footprint (issue 16): split Gaussians wider than 1 px before training / in densification
+           "ours + init split": {"init_max_px": 1.0}, "ours + split px": {"split_px": 1.0},
+           "ours + footprint": {"init_max_px": 1.0, "split_px": 1.0}}
 
 
 def truth(sequence, i: int) -> tuple[np.ndarray, np.ndarray]:

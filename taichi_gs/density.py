@@ -7,7 +7,7 @@ with the parameters. Stage 3 drives it with :meth:`DensityControl.step` on 3DGS'
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -32,10 +32,21 @@ class DensitySchedule:
     prune_scale: float  # drop Gaussians whose largest scale exceeds this
     max_gaussians: int
     reset_opacity_every: int = 0  # 0 = never
+    # [ours] also split (not clone) Gaussians wider than split_px pixels seen from the nearest of the
+    # camera centres, at focal length focal (0 = off: the world-size rule split_scale alone)
+    split_px: float = 0.0
+    centres: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)), compare=False)
+    focal: float = 0.0
 
     def densifies(self, done: int) -> bool:
         """True when ``done`` iterations end a densification interval inside the window."""
         return self.densify_from <= done <= self.densify_until and done % self.densify_every == 0
+
+    def split_limit(self, means: np.ndarray) -> float | np.ndarray:
+        """The largest scale each Gaussian may keep and be cloned rather than split (metres)."""
+        if self.split_px <= 0:
+            return self.split_scale
+        return np.minimum(self.split_scale, footprint_limit(means, self.centres, self.focal, self.split_px))
 
 
 class DensityControl:
@@ -63,16 +74,17 @@ class DensityControl:
         """3DGS's schedule after ``done`` iterations: densify and prune every ``densify_every`` in the
         window; reset opacities every ``reset_opacity_every`` inside it."""
         if schedule.densifies(done):
-            self.densify_and_prune(store, schedule.grad_threshold_px, schedule.split_scale, schedule.prune_opacity,
-                                   schedule.prune_scale, schedule.max_gaussians, rng)
+            self.densify_and_prune(store, schedule.grad_threshold_px, schedule.split_limit(store.array("means")),
+                                   schedule.prune_opacity, schedule.prune_scale, schedule.max_gaussians, rng)
         if schedule.reset_opacity_every and done % schedule.reset_opacity_every == 0 and done < schedule.densify_until:
             reset_opacity(store, RESET_OPACITY)
 
-    def densify_and_prune(self, store: GaussianStore, grad_threshold_px: float, split_scale: float,
+    def densify_and_prune(self, store: GaussianStore, grad_threshold_px: float, split_scale: float | np.ndarray,
                           min_opacity: float, max_scale: float, max_gaussians: int,
                           rng: np.random.Generator) -> tuple[int, int]:
         """Gaussians whose mean image-plane gradient exceeds ``grad_threshold_px`` are cloned (largest
-        scale <= ``split_scale``) or split in two samples of themselves with scales / 1.6; then those
+        scale <= ``split_scale``: one value or one per Gaussian) or split in two samples of themselves
+        with scales / 1.6; then those
         with opacity < ``min_opacity`` or a scale > ``max_scale`` are dropped. Never grows past
         ``max_gaussians``. Resets the statistics. Returns (added, removed)."""
         mean_grad = self.grad_sum / np.maximum(self.grad_count, 1)
@@ -80,7 +92,8 @@ class DensityControl:
         room = max(max_gaussians - store.count, 0)
         if len(grow) > room:
             grow = grow[np.argsort(-mean_grad[grow])[:room]]
-        big = store.array("log_scales")[grow].max(axis=1) > np.log(split_scale)
+        limit = np.broadcast_to(np.asarray(split_scale, np.float64), (store.count,))[grow]
+        big = store.array("log_scales")[grow].max(axis=1) > np.log(limit)
         split, clone = grow[big], grow[~big]
         new_rows = clone_rows(store, clone)
         halves = split_rows(store, split, rng)
@@ -89,6 +102,26 @@ class DensityControl:
         self.grad_sum = np.zeros(store.count)
         self.grad_count = np.zeros(store.count)
         return len(grow), removed
+
+    def split_oversized(self, store: GaussianStore, max_scale: np.ndarray, max_gaussians: int,
+                        rng: np.random.Generator) -> int:
+        """[ours] Split every Gaussian whose largest scale exceeds its ``max_scale`` (metres, one per
+        Gaussian), repeatedly until none does or ``max_gaussians`` is reached (the largest relative to
+        their limit first); the children start with zero Adam moments and statistics. Returns how
+        many Gaussians were added."""
+        added = 0
+        limit = np.asarray(max_scale, np.float64)
+        while True:
+            excess = store.array("log_scales").max(axis=1) - np.log(limit)
+            split = np.flatnonzero(excess > 0)
+            split = split[np.argsort(-excess[split])[: max(max_gaussians - store.count, 0)]]
+            if len(split) == 0:
+                return added
+            store.append(split_rows(store, split, rng))
+            limit = np.concatenate([limit, limit[split]])
+            added += len(split)
+            self.grad_sum = np.zeros(store.count)
+            self.grad_count = np.zeros(store.count)
 
     def state(self) -> dict[str, np.ndarray]:
         return {"grad_sum": self.grad_sum, "grad_count": self.grad_count}
@@ -135,3 +168,12 @@ def prune(store: GaussianStore, min_opacity: float, max_scale: float = np.inf) -
 def reset_opacity(store: GaussianStore, opacity: float) -> None:
     """Clamp every opacity to at most ``opacity`` and forget its Adam moments (3DGS's reset)."""
     store.reset("opacity_logits", np.minimum(store.array("opacity_logits"), logit(opacity)))
+
+
+def footprint_limit(means: np.ndarray, centres: np.ndarray, focal: float, pixels: float) -> np.ndarray:
+    """Per Gaussian, the world size (metres) that ``pixels`` pixels span at its distance from the
+    nearest camera centre (``centres`` (C, 3), ``focal`` in pixels)."""
+    nearest = np.full(len(means), np.inf)
+    for c in np.asarray(centres, np.float64):
+        nearest = np.minimum(nearest, np.linalg.norm(np.asarray(means, np.float64) - c, axis=1))
+    return pixels * np.maximum(nearest, 1e-6) / focal

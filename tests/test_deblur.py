@@ -132,3 +132,29 @@ def test_the_k_warning_follows_the_presets_step_target(preset, exposure_px, warn
     assert bool(warnings) == warns
     if warns:  # 15 px over k = 7: 2.5 px steps; --k 9 gives 15 / 8 = 1.9 px, under fast's 2 px
         assert "2.5 px (frame 1)" in warnings[0] and "--k 9 " in warnings[0]
+
+
+def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
+    """With the scales frozen, every Gaussian stage 3 writes is at most ``init_max_px`` wide (sigma,
+    seen from the nearest training camera; the split halves sample positions, so a little slack),
+    and there are more of them than stage 2 gave."""
+    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.density import footprint_limit
+    from taichi_gs.io.sequence import load_sequence
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    out = tmp_path / "out"
+    write_refine_outputs(sequence, out, voxel=0.08)
+    before = read_splats(out / "refine" / "splats.ply")
+    config = dataclasses.replace(PRESETS["fast"], k=2, iterations=4, densify_from=1000, exposure_from=1000,
+                                 test_pose_iterations=0, lr_scales=0.0, lr_means=1e-12, lr_means_final=1e-12,
+                                 holdout_every=0, init_max_px=0.6, checkpoint_every=100)
+    result = run_deblur(sequence, out, config)
+    after = read_splats(out / "deblur" / "splats.ply")
+    centres = read_tum(out / "refine" / "trajectory.txt")[1][:, :3, 3]
+    wide = np.exp(before.log_scales.max(axis=1)) / footprint_limit(before.means, centres, sequence.K()[0, 0], 1.0)
+    assert wide.max() > 1.0  # the stand-in's Gaussians are wider than the footprint before
+    width = np.exp(after.log_scales.max(axis=1)) / footprint_limit(after.means, centres, sequence.K()[0, 0], 1.0)
+    assert result.gaussians > len(before) and np.percentile(width, 99) <= 0.6 * 1.05

@@ -168,3 +168,47 @@ def test_the_store_carries_moments_through_keep_append_and_reset():
         np.testing.assert_array_equal(restored.arrays()[name], store.arrays()[name])
     with pytest.raises(ValueError, match="lack"):
         store.append({"means": np.zeros((1, 3))})
+
+
+def test_footprint_limit_is_pixels_times_distance_to_the_nearest_camera_over_focal():
+    from taichi_gs.density import footprint_limit
+
+    means = np.array([[0.0, 0.0, 2.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
+    centres = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 1.0]])
+    np.testing.assert_allclose(footprint_limit(means, centres, 100.0, 0.5), [0.5 * 2 / 100, 0.5 * 1 / 100, 0.5 * 4 / 100])
+
+
+def test_split_oversized_halves_until_every_gaussian_fits_its_limit():
+    model = _model()
+    before = model.arrays()
+    sizes = np.exp(before["log_scales"].max(axis=1))
+    limit = sizes / np.array([0.99, 2.0, 0.99, 3.0, 0.99, 0.99])  # 1 needs two splits (1.6^2 > 2), 3 needs three
+    added = model.density.split_oversized(model.store, limit, max_gaussians=100, rng=np.random.default_rng(0))
+    assert added == (1 + 2) + (1 + 2 + 4)
+    after = model.arrays()
+    assert model.count == 6 + added
+    children = after["log_scales"].max(axis=1)
+    np.testing.assert_allclose(np.sort(np.exp(children[6:]))[:4], np.sort(np.repeat(sizes[3] / 1.6**3, 4))[:4], rtol=1e-5)
+    for row in (0, 2, 4, 5):  # within their limit: untouched
+        np.testing.assert_array_equal(after["means"][row], before["means"][row])
+    # the children of Gaussian 1 share its colour and stay near it (within a few of its sigmas)
+    near_1 = np.linalg.norm(after["means"] - before["means"][1], axis=1) < 3 * sizes[1]
+    assert near_1.sum() >= 4
+    # Adam moments: the originals keep theirs, the new rows start at 0
+    m, _ = model.store.adam.moments["colors"]
+    assert np.all(m.to_numpy()[6:model.count] == 0) and np.all(m.to_numpy()[0] == 1)
+    # a cap stops the splitting
+    capped = _model()
+    assert capped.density.split_oversized(capped.store, limit, max_gaussians=8, rng=np.random.default_rng(0)) == 2
+    assert capped.count == 8
+
+
+def test_densify_accepts_a_split_limit_per_gaussian():
+    """Gaussian 0 (small, large gradient) is split instead of cloned when its own limit is below its size."""
+    model = _model()
+    limit = np.full(model.count, SPLIT_SCALE)
+    limit[0] = 0.001
+    before = model.arrays()
+    model.density.densify_and_prune(model.store, THRESHOLD, limit, MIN_OPACITY, MAX_SCALE, 100, np.random.default_rng(3))
+    after = model.arrays()
+    np.testing.assert_allclose(after["log_scales"][0], before["log_scales"][0] - np.log(1.6), atol=1e-6)

@@ -133,5 +133,11 @@ def test_protocol_on_a_run_whose_renders_are_the_truth(tmp_path):
     expected = np.mean([psnr(sequence.sharp(i), sequence.color(i)) for i in test])
     assert held["held_out_psnr_db"] == pytest.approx(expected, abs=0.05)
     assert 0.3 < held["warp_coverage"] <= 1.0 and np.isfinite(held["warped_neighbour_psnr_db"])
+    ceiling = []
+    for i in test:  # the held-out frame over the mean of its nearest training frames, before and after
+        near = [j for j in (max((t for t in train if t < i), default=None), min((t for t in train if t > i), default=None))
+                if j is not None]
+        ceiling.append(gradient_energy(sequence.color(i)) / np.mean([gradient_energy(sequence.color(j)) for j in near]))
+    assert held["sharpest_over_neighbours_gradient_energy_ratio"] == pytest.approx(np.mean(ceiling), rel=1e-9)
     assert metrics["train"]["views"] == 4
     assert cv2.imread(str(tmp_path / "run" / "report" / "no_reference_views.png")) is not None

@@ -103,6 +103,12 @@ def test_uncovered_pixels_get_gaussians_at_the_nearest_depth():
     assert added == model.count - n and added >= 0.4 * (w * h / 4)
     new = model.arrays()["means"][n:]
     assert np.allclose(new[:, 2], 2.0, atol=0.02) and new[:, 0].max() > 0.5
+    # radius: the stride's footprint (sigma = 2 px at the depth), or radius_px's when given
+    np.testing.assert_allclose(np.exp(model.arrays()["log_scales"][n:]), np.repeat(2 * new[:, 2:3] / f, 3, axis=1), rtol=0.02)
+    narrow = BlurScene(splats, K, w, h)
+    fill_uncovered(narrow, color, sensor, np.eye(4), K, 2, 10_000, np.random.default_rng(0), radius_px=0.5)
+    np.testing.assert_allclose(np.exp(narrow.arrays()["log_scales"][n:]), np.repeat(0.5 * narrow.arrays()["means"][n:, 2:3] / f, 3, 1),
+                               rtol=0.02)
     rgb, _ = model.render(np.eye(4))
     _, alpha = model.coverage(np.eye(4))
     assert alpha[:, 25:].mean() > 0.9 and np.allclose(rgb[:, 30:].mean(), 0.8 * alpha[:, 30:].mean(), atol=0.05)

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from ..deblur_model import BlurScene, Rates
-from ..density import DensitySchedule
+from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
 from ..geometry import invert, se3_log, virtual_pose
 from ..io.atomic import write_text
@@ -97,6 +97,12 @@ class DeblurConfig:
     fill_uncovered: bool = False
     fill_frames: int = 2
     fill_stride: int = 2
+    # [ours] splat footprint: before training, split Gaussians wider (largest sigma) than init_max_px
+    # pixels at the training resolution, seen from the nearest training camera (stage 2's fixed-size
+    # Gaussians are wider than the blur at 320x240); during densification, split instead of clone
+    # those wider than split_px pixels (0 = off: 3DGS's world-size rule split_scale alone)
+    init_max_px: float = 0.0
+    split_px: float = 0.0
     grid_frames: int = 4
     # [ours] coarse-to-fine: the first coarse_fraction of the iterations train at 1/coarse_scale, then
     # 1/(coarse_scale/2), ... 1/2 of the training resolution (equal shares; 1 = off), the rest at it
@@ -310,6 +316,10 @@ def run_deblur(
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
     model = BlurScene(splats, frames.K, width, height)
+    centres = poses[train, :3, 3]
+    if config.init_max_px > 0:
+        limit = footprint_limit(model.arrays()["means"], centres, frames.K[0, 0], config.init_max_px)
+        model.density.split_oversized(model.store, limit, config.max_gaussians, np.random.default_rng([config.seed, 1]))
     start = initial_offsets(poses, config.initial_exposure_fraction)
     offsets = start.copy()
     exposure_adam = RowAdam(len(sequence), (2, 6))
@@ -355,12 +365,14 @@ def run_deblur(
             + config.lambda_depth * step.losses["depth"]
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
-        density = density_schedule(config, extent, model.width)  # the training width of this phase
+        # the density schedule in this phase's pixels (coarse-to-fine changes the training width)
+        density = density_schedule(config, extent, model.width, centres, frames.K[0, 0])
         model.density.step(it + 1, model.store, density, rng)
         if config.fill_uncovered and density.densifies(it + 1):
             for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
                 fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
-                               frames.K, config.fill_stride, config.max_gaussians, rng)
+                               frames.K, config.fill_stride, config.max_gaussians, rng,
+                               min(config.fill_stride, config.split_px or config.fill_stride))
         if progress is not None:
             progress(it + 1, config.iterations, loss=loss, psnr=step.psnr, gaussians=model.count)
         if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 \
@@ -425,10 +437,11 @@ def nearest_filled(depth: np.ndarray) -> np.ndarray:
 
 
 def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_to_world: np.ndarray, K: np.ndarray,
-                   stride: int, max_gaussians: int, rng: np.random.Generator) -> int:
+                   stride: int, max_gaussians: int, rng: np.random.Generator, radius_px: float | None = None) -> int:
     """Add Gaussians where the render of a view has alpha < 0.5: one per ``stride`` pixels (a random
     phase), coloured by the input, at the sensor depth, else the scene's rendered depth (alpha >= 0.5),
-    else the nearest pixel's such depth; radius (sigma) the stride's footprint. Returns how many."""
+    else the nearest pixel's such depth; radius (sigma) ``radius_px`` pixels' footprint (default: the
+    stride). Returns how many."""
     rendered, alpha = model.coverage(cam_to_world)
     known = np.where(depth > 0, depth, np.where(alpha >= 0.5, rendered, 0.0))
     grid = np.zeros(alpha.shape, bool)
@@ -444,16 +457,19 @@ def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_t
     z = nearest_filled(known)[v, u].astype(np.float64)
     points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
     model.add_gaussians(points @ cam_to_world[:3, :3].T + cam_to_world[:3, 3], color[v, u],
-                        stride * z / K[0, 0], opacity=0.5)
+                        (radius_px or stride) * z / K[0, 0], opacity=0.5)
     return len(v)
 
 
-def density_schedule(config: DeblurConfig, extent: float, width: int) -> DensitySchedule:
-    """The config's density control in the policy's units (pixels, metres)."""
+def density_schedule(config: DeblurConfig, extent: float, width: int, centres: np.ndarray,
+                     focal: float) -> DensitySchedule:
+    """The config's density control in the policy's units (pixels, metres); ``centres`` and ``focal``
+    (training cameras, this resolution) for ``split_px``."""
     # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
     return DensitySchedule(config.densify_from, config.densify_until, config.densify_every,
                            config.densify_grad * 2.0 / width, config.split_scale * extent, config.prune_opacity,
-                           config.prune_scale * extent, config.max_gaussians, config.reset_opacity_every)
+                           config.prune_scale * extent, config.max_gaussians, config.reset_opacity_every,
+                           config.split_px, centres, focal)
 
 
 def _colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:
