@@ -158,3 +158,36 @@ def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
     assert wide.max() > 1.0  # the stand-in's Gaussians are wider than the footprint before
     width = np.exp(after.log_scales.max(axis=1)) / footprint_limit(after.means, centres, sequence.K()[0, 0], 1.0)
     assert result.gaussians > len(before) and np.percentile(width, 99) <= 0.6 * 1.05
+
+
+def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupted_one(tmp_path):
+    """Stage 3's whole state (Gaussians and their Adam moments, densification statistics, exposures,
+    colour transforms and their moments, the RNG) survives a checkpoint: training continues from the
+    checkpoint's iteration, not from 0, and reaches the uninterrupted run's result."""
+    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.io.sequence import load_sequence
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=5),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    config = dataclasses.replace(PRESETS["fast"], k=3, iterations=40, densify_from=10, densify_until=30,
+                                 densify_every=10, exposure_from=5, test_pose_iterations=2, checkpoint_every=10)
+    for name in ("whole", "resumed"):
+        write_refine_outputs(sequence, tmp_path / name, voxel=0.06)
+    whole = run_deblur(sequence, tmp_path / "whole", config)
+
+    def stop_at_25(iteration, total, **_):
+        if iteration == 25:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_deblur(sequence, tmp_path / "resumed", config, progress=stop_at_25)
+    assert (tmp_path / "resumed" / "deblur" / "checkpoint.npz").is_file()
+    seen: list[int] = []
+    resumed = run_deblur(sequence, tmp_path / "resumed", config, progress=lambda it, total, **_: seen.append(it))
+    assert seen[0] == 21 and seen[-1] == 40  # continued after the checkpoint of iteration 20
+    assert resumed.gaussians == whole.gaussians
+    np.testing.assert_allclose(resumed.exposure, whole.exposure, atol=1e-5)
+    a, b = read_splats(tmp_path / "whole" / "deblur" / "splats.ply"), read_splats(tmp_path / "resumed" / "deblur" / "splats.ply")
+    np.testing.assert_allclose(b.means, a.means, atol=1e-5)
+    np.testing.assert_allclose(b.sh, a.sh, atol=1e-4)
