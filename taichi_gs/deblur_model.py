@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .density import DensityControl
-from .gaussian_store import FIELDS, GaussianStore
+from .gaussian_store import FIELDS, GaussianStore, morton_order
 from .geometry import exposure_pose_gradients, raster_intrinsics, virtual_pose
 from .photometric import affine_backward, apply_affine
 from .render import Camera, Rasterizer, blur, losses, to_device
@@ -156,6 +156,12 @@ class BlurScene:
         """The k-view average (H, W, 3) over an exposure, as NumPy."""
         self._render_exposure(base, d_start, d_end, exposure_taus(k))
         return self.blurred.to_numpy().astype(np.float32)
+
+    def order_in_space(self) -> None:
+        """[ours] Put the Gaussians (with their moments and statistics) in Morton order of their centres."""
+        order = morton_order(self.store.array("means"))
+        self.store.reorder(order)
+        self.density.reorder(order)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Parameters as NumPy, trimmed to the live Gaussians."""

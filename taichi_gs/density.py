@@ -65,6 +65,10 @@ class DensityControl:
         self.grad_sum[seen] += grad[seen] * z[seen] / focal
         self.grad_count[seen] += 1
 
+    def reorder(self, order: np.ndarray) -> None:
+        """Follow the store's :meth:`GaussianStore.reorder` with the statistics."""
+        self.grad_sum, self.grad_count = self.grad_sum[order], self.grad_count[order]
+
     def appended(self, count: int) -> None:
         """Statistics for ``count`` Gaussians appended to the store by someone else (start at zero)."""
         self.grad_sum = np.concatenate([self.grad_sum, np.zeros(count)])

@@ -70,6 +70,14 @@ class GaussianStore:
         moments = {name: (m[mask], v[mask]) for name, (m, v) in self.moments().items()}
         self._build({name: value[mask] for name, value in self.arrays().items()}, moments, self.adam.t)
 
+    def reorder(self, order: np.ndarray) -> None:
+        """Put the Gaussians in ``order`` (a permutation of the rows), moments alongside."""
+        order = np.asarray(order)
+        if sorted(order.tolist()) != list(range(self.count)):
+            raise ValueError("order must be a permutation of the Gaussians")
+        moments = {name: (m[order], v[order]) for name, (m, v) in self.moments().items()}
+        self._build({name: value[order] for name, value in self.arrays().items()}, moments, self.adam.t)
+
     def append(self, rows: dict[str, np.ndarray]) -> None:
         """Add Gaussians after the existing ones (every stored field given), with zero Adam moments."""
         current = self.arrays()
@@ -102,3 +110,24 @@ class GaussianStore:
         """Restore what :meth:`state` saved."""
         moments = {name: (state[f"m_{name}"], state[f"v_{name}"]) for name in self.trained}
         self._build({name: state[f"p_{name}"] for name in self.fields}, moments, int(state["adam_t"]))
+
+
+def _spread_bits(x: np.ndarray) -> np.ndarray:
+    """The low 10 bits of each value moved to every third bit position (for a 30-bit Morton code)."""
+    x = x.astype(np.uint64) & np.uint64(0x3FF)
+    for shift, mask in ((16, 0x030000FF), (8, 0x0300F00F), (4, 0x030C30C3), (2, 0x09249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """[ours] A permutation putting ``points`` (N, 3) along a Morton (Z-order) curve of their bounding
+    box at 1024 cells per axis: Gaussians near in space become near in memory, so the per-tile work
+    (which visits a tile's Gaussians) reads their records with fewer cache misses."""
+    points = np.asarray(points, np.float64)
+    if len(points) == 0:
+        return np.zeros(0, np.int64)
+    lo, span = points.min(axis=0), np.ptp(points, axis=0)
+    cells = np.floor((points - lo) / np.maximum(span, 1e-12) * 1023.999).astype(np.int64)
+    code = _spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1)) | (_spread_bits(cells[:, 2]) << np.uint64(2))
+    return np.argsort(code, kind="stable")

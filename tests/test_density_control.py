@@ -212,3 +212,26 @@ def test_densify_accepts_a_split_limit_per_gaussian():
     model.density.densify_and_prune(model.store, THRESHOLD, limit, MIN_OPACITY, MAX_SCALE, 100, np.random.default_rng(3))
     after = model.arrays()
     np.testing.assert_allclose(after["log_scales"][0], before["log_scales"][0] - np.log(1.6), atol=1e-6)
+
+
+def test_morton_order_interleaves_x_y_z_and_reorder_moves_moments_with_rows():
+    from taichi_gs.gaussian_store import morton_order
+
+    corners = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)  # code x + 2y + 4z
+    shuffled = np.random.default_rng(0).permutation(8)
+    np.testing.assert_array_equal(morton_order(corners[shuffled]), np.argsort(shuffled))
+    assert morton_order(np.zeros((0, 3))).size == 0
+
+    model = _model()
+    before, moments = model.arrays(), model.store.moments()
+    model.density.grad_sum = np.arange(6.0)
+    order = np.array([3, 0, 5, 1, 4, 2])
+    model.store.reorder(order)
+    model.density.reorder(order)
+    for name in TRAINED:
+        np.testing.assert_array_equal(model.arrays()[name], before[name][order], err_msg=name)
+        np.testing.assert_array_equal(model.store.moments()[name][0], moments[name][0][order], err_msg=name)
+    np.testing.assert_array_equal(model.density.grad_sum, order.astype(float))
+    assert model.store.adam.t == 7
+    with pytest.raises(ValueError, match="permutation"):
+        model.store.reorder(np.array([0, 0, 1, 2, 3, 4]))
