@@ -400,9 +400,45 @@ def make(dt) -> SimpleNamespace:
         g_phi = vec3(b[1, 2] - b[2, 1], b[2, 0] - b[0, 2], b[0, 1] - b[1, 0]) + t_c.cross(g_t)
         return ti.Vector([g_t[0], g_t[1], g_t[2], g_phi[0], g_phi[1], g_phi[2]], dt=dt)
 
+    @ti.func
+    def slots_vjp(
+        g,  # the Gaussian
+        first,  # its slots are first .. last - 1 of slot_grad
+        last,
+        slot_grad: Array,  # (S, N_GRADS) dL/d(screen record) per tile slot
+        means: Array,
+        quats: Array,
+        log_scales: Array,
+        logits: Array,
+        sh: Array,
+        n_sh,
+        cam,
+        intr,
+        width,
+        height,
+        isotropic: ti.template(),
+        d_means: Array,  # output, added to (as project_one_vjp)
+        d_quats: Array,
+        d_log_scales: Array,
+        d_logits: Array,
+        d_sh: Array,
+    ):
+        """Sum Gaussian g's slot gradients (one slot per tile it touches) and back-propagate them
+        through :func:`project_one_vjp`; returns its pose gradient (zero when it touches no tile)."""
+        pose = ti.Vector.zero(dt, 6)
+        if last > first:
+            gs = ti.Vector.zero(dt, N_GRADS)
+            for s in range(first, last):
+                for c in ti.static(range(N_GRADS)):
+                    gs[c] += slot_grad[s, c]
+            pose = project_one_vjp(g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, gs,
+                                   isotropic, d_means, d_quats, d_log_scales, d_logits, d_sh)
+        return pose
+
     return SimpleNamespace(
         project_one=project_one,
         project_one_vjp=project_one_vjp,
+        slots_vjp=slots_vjp,
         vec3=vec3,
         vec4=vec4,
         mat3=mat3,

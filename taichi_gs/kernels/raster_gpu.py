@@ -344,16 +344,10 @@ def make(dt) -> SimpleNamespace:
         isotropic: ti.template(),
     ):
         for i in range(n):
-            pose = ti.Vector.zero(dt, 6)
-            if offsets[i + 1] > offsets[i]:
-                gs = ti.Vector.zero(dt, N_SLOT_GRADS)
-                for s in range(offsets[i], offsets[i + 1]):
-                    for c in ti.static(range(N_SLOT_GRADS)):
-                        gs[c] += slot_grad[s, c]
-                pose = proj_f.project_one_vjp(
-                    order[i], means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, gs, isotropic,
-                    d_means, d_quats, d_log_scales, d_logits, d_sh,
-                )
+            pose = proj_f.slots_vjp(
+                order[i], offsets[i], offsets[i + 1], slot_grad, means, quats, log_scales, logits, sh, n_sh, cam,
+                intr, width, height, isotropic, d_means, d_quats, d_log_scales, d_logits, d_sh,
+            )
             for c in ti.static(range(6)):
                 pose_part[i, c] = pose[c]
 

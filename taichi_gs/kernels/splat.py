@@ -221,16 +221,10 @@ def _kernels(dt) -> SimpleNamespace:
                     out_trans, out_last, d_rgb, d_depth, d_alpha, state, slot_grad,
                 )
         for g in range(n):
-            pose = ti.Vector.zero(dt, 6)
-            if offsets[g + 1] > offsets[g]:
-                gs = ti.Vector.zero(dt, N_SLOT_GRADS)
-                for s in range(offsets[g], offsets[g + 1]):
-                    for c in ti.static(range(N_SLOT_GRADS)):
-                        gs[c] += slot_grad[s, c]
-                pose = proj_f.project_one_vjp(
-                    g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, gs, isotropic,
-                    d_means, d_quats, d_log_scales, d_logits, d_sh,
-                )
+            pose = proj_f.slots_vjp(
+                g, offsets[g], offsets[g + 1], slot_grad, means, quats, log_scales, logits, sh, n_sh, cam, intr,
+                width, height, isotropic, d_means, d_quats, d_log_scales, d_logits, d_sh,
+            )
             for c in ti.static(range(6)):
                 pose_part[g, c] = pose[c]
         for chunk in range((n + POSE_CHUNK - 1) // POSE_CHUNK):
