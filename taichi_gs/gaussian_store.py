@@ -73,7 +73,7 @@ class GaussianStore:
     def reorder(self, order: np.ndarray) -> None:
         """Put the Gaussians in ``order`` (a permutation of the rows), moments alongside."""
         order = np.asarray(order)
-        if sorted(order.tolist()) != list(range(self.count)):
+        if order.shape != (self.count,) or not np.array_equal(np.sort(order), np.arange(self.count)):
             raise ValueError("order must be a permutation of the Gaussians")
         moments = {name: (m[order], v[order]) for name, (m, v) in self.moments().items()}
         self._build({name: value[order] for name, value in self.arrays().items()}, moments, self.adam.t)
