@@ -26,6 +26,9 @@ def test_nested_sections_are_counted_exclusively_and_the_rest_is_host_work():
     assert sections["other host work"]["wall_s"] == pytest.approx(0.03, abs=0.03)
     assert sum(s["wall_s"] for s in sections.values()) == pytest.approx(report["wall_s"], rel=1e-6)
     assert list(sections)[0] == "inner" and sections["inner"]["calls"] == 1
+    # inclusive: a parent with its nested sections (how long a test-view fit took, renders included)
+    assert sections["outer"]["inclusive_wall_s"] == pytest.approx(0.15, abs=0.04)
+    assert sections["inner"]["inclusive_wall_s"] == pytest.approx(sections["inner"]["wall_s"], rel=1e-9)
 
 
 def test_profiled_renders_split_the_forward_by_phase_and_are_written(tmp_path):
