@@ -66,17 +66,19 @@ class GaussianStore:
 
     def keep(self, mask: np.ndarray) -> None:
         """Keep the Gaussians where ``mask`` is true (their parameters and moments, in order)."""
-        mask = np.asarray(mask, bool)
-        moments = {name: (m[mask], v[mask]) for name, (m, v) in self.moments().items()}
-        self._build({name: value[mask] for name, value in self.arrays().items()}, moments, self.adam.t)
+        self._take(np.asarray(mask, bool))
 
     def reorder(self, order: np.ndarray) -> None:
         """Put the Gaussians in ``order`` (a permutation of the rows), moments alongside."""
         order = np.asarray(order)
         if order.shape != (self.count,) or not np.array_equal(np.sort(order), np.arange(self.count)):
             raise ValueError("order must be a permutation of the Gaussians")
-        moments = {name: (m[order], v[order]) for name, (m, v) in self.moments().items()}
-        self._build({name: value[order] for name, value in self.arrays().items()}, moments, self.adam.t)
+        self._take(order)
+
+    def _take(self, rows: np.ndarray) -> None:
+        """Rebuild the store from the given rows (a mask or an index array) of parameters and moments."""
+        moments = {name: (m[rows], v[rows]) for name, (m, v) in self.moments().items()}
+        self._build({name: value[rows] for name, value in self.arrays().items()}, moments, self.adam.t)
 
     def append(self, rows: dict[str, np.ndarray]) -> None:
         """Add Gaussians after the existing ones (every stored field given), with zero Adam moments."""
@@ -129,5 +131,6 @@ def morton_order(points: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     lo, span = points.min(axis=0), np.ptp(points, axis=0)
     cells = np.floor((points - lo) / np.maximum(span, 1e-12) * 1023.999).astype(np.int64)
-    code = _spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1)) | (_spread_bits(cells[:, 2]) << np.uint64(2))
+    code = (_spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1))
+            | (_spread_bits(cells[:, 2]) << np.uint64(2)))
     return np.argsort(code, kind="stable")

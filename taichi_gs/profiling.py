@@ -7,9 +7,10 @@ and ``OUT/profile.md`` (:func:`write`). Each timed section synchronises the devi
 time is counted exclusively: a section nested in another (a render inside a test-view exposure fit)
 is taken out of its parent. Each section also carries its inclusive seconds (the parent with what is
 nested in it: how long the test-view exposure fits took, renders included). "other host work" is a
-stage's wall time that no section covers (the Python training loop, host-side pose updates, progress). CPU seconds are the process's user + sys
-time (every thread), so CPU seconds / wall seconds is how many cores a section kept busy. Without
-:func:`install` nothing is wrapped and nothing is slowed down.
+stage's wall time that no section covers (the Python training loop, host-side pose updates,
+progress). CPU seconds are the process's user + sys time (every thread), so CPU seconds / wall
+seconds is how many cores a section kept busy. Without :func:`install` nothing is wrapped and
+nothing is slowed down.
 """
 
 from __future__ import annotations
@@ -29,6 +30,11 @@ from .io.atomic import write_text
 def _cpu_seconds() -> float:
     t = os.times()
     return t.user + t.system
+
+
+def _entry(wall: float = 0.0, cpu: float = 0.0, calls: int = 0) -> dict[str, float]:
+    """A section's record: exclusive and inclusive seconds (equal for a section with nothing nested)."""
+    return {"wall_s": wall, "cpu_s": cpu, "calls": calls, "inclusive_wall_s": wall, "inclusive_cpu_s": cpu}
 
 
 class Profiler:
@@ -57,8 +63,7 @@ class Profiler:
                 self._stack[-1][0] += wall
                 self._stack[-1][1] += cpu
             record = self.stages.setdefault(self.stage, {"wall_s": 0.0, "cpu_s": 0.0, "sections": {}})
-            entry = record["sections"].setdefault(name, {"wall_s": 0.0, "cpu_s": 0.0, "calls": 0,
-                                                          "inclusive_wall_s": 0.0, "inclusive_cpu_s": 0.0})
+            entry = record["sections"].setdefault(name, _entry())
             entry["wall_s"] += wall - child_wall
             entry["cpu_s"] += cpu - child_cpu
             entry["inclusive_wall_s"] += wall
@@ -74,8 +79,7 @@ class Profiler:
         for part, seconds in parts.items():
             seconds = min(seconds, sections[name]["wall_s"])
             share = cpu * seconds / max(wall, 1e-12)
-            entry = sections.setdefault(f"{name}: {part}", {"wall_s": 0.0, "cpu_s": 0.0, "calls": 0,
-                                                            "inclusive_wall_s": 0.0, "inclusive_cpu_s": 0.0})
+            entry = sections.setdefault(f"{name}: {part}", _entry())
             entry["wall_s"] += seconds
             entry["cpu_s"] += share
             entry["inclusive_wall_s"] += seconds
@@ -108,10 +112,8 @@ class Profiler:
             covered_wall = sum(s["wall_s"] for s in sections.values())
             covered_cpu = sum(s["cpu_s"] for s in sections.values())
             if record["wall_s"] > 0:
-                other_wall = max(record["wall_s"] - covered_wall, 0.0)
-                other_cpu = max(record["cpu_s"] - covered_cpu, 0.0)
-                sections["other host work"] = {"wall_s": other_wall, "cpu_s": other_cpu, "calls": 1,
-                                               "inclusive_wall_s": other_wall, "inclusive_cpu_s": other_cpu}
+                sections["other host work"] = _entry(max(record["wall_s"] - covered_wall, 0.0),
+                                                     max(record["cpu_s"] - covered_cpu, 0.0), calls=1)
             total = max(record["wall_s"], covered_wall, 1e-12)
             rows = {name: {**s, "share": s["wall_s"] / total, "cores": s["cpu_s"] / max(s["wall_s"], 1e-12)}
                     for name, s in sorted(sections.items(), key=lambda kv: -kv[1]["wall_s"])}
