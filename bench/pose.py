@@ -1,10 +1,10 @@
 """Benchmark stage 1 (local pose) against classical peers on synthetic and real sequences, in one run.
 
     python bench/pose.py [--frames 60] [--size 320x240] [--trajectories handheld,turn,translation]
-                         [--seeds 0,1,2] [--real-every 1,2,3] [--real-scale 0.5] [--methods ...] [--out DIR]
+                         [--scenes room,office,plain,corridor] [--seeds 0,1,2] [--real-every 1,2,3] [--real-scale 0.5] [--methods ...] [--out DIR]
     python bench/pose.py --sequence FOLDER [--sequence FOLDER ...]   # any folders with ground truth
 
-Sequences: ``taichi_gs.synth`` (extreme blur) for every trajectory kind and seed, and the 7-Scenes
+Sequences: ``taichi_gs.synth`` (extreme blur) for every scene kind, trajectory kind and seed, and the 7-Scenes
 RedKitchen slice of ../shared/data (``bench/realdata.py``) at every 1st, 2nd, 3rd frame.
 
 Methods (each from identity at frame 0):
@@ -183,6 +183,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--size", default="320x240")
     parser.add_argument("--trajectories", default="handheld,turn,translation")
+    parser.add_argument("--scenes", default="room,office,plain,corridor", help="synth scene kinds")
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--real-every", default="1,2,3", help="7-Scenes frame steps; empty: no real data")
     parser.add_argument("--real-scale", type=float, default=0.5)
@@ -233,12 +234,14 @@ def sequences(args, root: Path):
     from taichi_gs.synth import SynthConfig, generate
 
     w, h = (int(x) for x in args.size.split("x"))
-    for trajectory in args.trajectories.split(","):
-        for seed in (int(s) for s in args.seeds.split(",")):
-            folder = root / f"{trajectory}_{w}x{h}_s{seed}"
-            if not (folder / "frames.txt").is_file():
-                generate(SynthConfig(width=w, height=h, frames=args.frames, trajectory=trajectory, blur="extreme", seed=seed), folder)
-            yield f"{trajectory} {w}x{h} seed {seed}", load_sequence(folder)
+    grid = [(scene, trajectory, int(seed)) for scene in args.scenes.split(",") if scene
+            for trajectory in args.trajectories.split(",") for seed in args.seeds.split(",")]
+    for scene, trajectory, seed in grid:
+        folder = root / f"{scene}_{trajectory}_{w}x{h}_s{seed}"
+        if not (folder / "frames.txt").is_file():
+            generate(SynthConfig(width=w, height=h, frames=args.frames, trajectory=trajectory, scene=scene,
+                                 blur="extreme", seed=seed), folder)
+        yield f"{scene} {trajectory} {w}x{h} seed {seed}", load_sequence(folder)
     for every in (int(e) for e in args.real_every.split(",") if e):
         folder = root / f"7scenes_every{every}_x{args.real_scale:g}"
         if not (folder / "frames.txt").is_file():

@@ -143,6 +143,13 @@ class SynthTrajectory(str, Enum):
     handheld = "handheld"
 
 
+class SynthScene(str, Enum):
+    room = "room"
+    office = "office"
+    plain = "plain"
+    corridor = "corridor"
+
+
 class SynthBlur(str, Enum):
     none = "none"
     moderate = "moderate"
@@ -157,6 +164,7 @@ def synth(
     width: Annotated[int, typer.Option(min=16, max=MAX_SYNTH_SIZE, help="Image width in pixels.")] = 320,
     height: Annotated[int, typer.Option(min=16, max=MAX_SYNTH_SIZE, help="Image height in pixels.")] = 240,
     trajectory: Annotated[SynthTrajectory, typer.Option(help="Camera motion: translation, turn in place, or hand-held shake.")] = SynthTrajectory.handheld,
+    scene: Annotated[SynthScene, typer.Option(help="Room kind: textured room with objects, office with furniture, plain (low-texture, planar), corridor.")] = SynthScene.room,
     blur: Annotated[SynthBlur, typer.Option(help="Motion blur: none, moderate (~7 px at 640 wide) or extreme (~30 px).")] = SynthBlur.extreme,
     seed: Annotated[int, typer.Option(help="Random seed of the scene, trajectory and noise.")] = 0,
     noise: Annotated[bool, typer.Option(help="Sensor-like depth noise.")] = True,
@@ -168,8 +176,8 @@ def synth(
     from .synth import SynthConfig, generate
 
     try:
-        config = SynthConfig(width=width, height=height, frames=frames, trajectory=trajectory.value, blur=blur.value,
-                             seed=seed, depth_noise=noise, holes=holes)
+        config = SynthConfig(width=width, height=height, frames=frames, trajectory=trajectory.value, scene=scene.value,
+                             blur=blur.value, seed=seed, depth_noise=noise, holes=holes)
     except ValueError as err:
         raise InputError(None, str(err), "see 'taichi-gs synth --help'") from None
     if out.exists() and not out.is_dir():

@@ -1,9 +1,10 @@
 """Synthetic blurred RGB-D sequences with exact ground truth.
 
-The scene is a closed room (walls, floor and ceiling carry scikit-image's bundled photos, mixed
-with procedural value noise so no surface is flat) holding spheres, cylinders and boxes at various
-depths, all kept outside a central disc in which every camera path runs. It is ray cast exactly
-(:mod:`taichi_gs.kernels.raycast`); depth is the camera z of the first hit.
+The scene is a closed room of one of several kinds (:mod:`taichi_gs.synth_scenes`: the textured
+``room`` with spheres, cylinders and boxes; an ``office`` with furniture; a ``plain`` low-texture,
+planar-dominant room; a ``corridor``), every object kept outside a central disc in which every
+camera path runs. It is ray cast exactly (:mod:`taichi_gs.kernels.raycast`); depth is the camera z
+of the first hit.
 
 Each frame's exposure is centred on its timestamp ``i / fps``: the mid-exposure pose is the ground
 truth, and the start and end poses are ``mid @ exp(-+delta)``, so SE(3) interpolation from start to
@@ -20,7 +21,6 @@ building and validating a :class:`SynthConfig` stays cheap.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,6 +38,7 @@ from .io.atomic import write_text
 from .io import jsonout
 from .io.images import encode_depth, to_uint8, write_png
 from .io.trajectory import format_tum, write_tum
+from .synth_scenes import CAMERA_DISC_RADIUS_M, SCENES, build_scene  # noqa: F401 (CAMERA_DISC_RADIUS_M re-exported)
 
 GENERATOR_VERSION = 1
 TRAJECTORIES = ("translation", "turn", "handheld")
@@ -58,17 +59,6 @@ DROPOUT_PIXEL_FRACTION = 0.005
 EDGE_RELATIVE_STEP = 0.03
 EDGE_DROP_PROBABILITY = 0.7
 
-TEXTURE_SIZE = 256
-WALL_TILE_M = 2.0
-OBJECT_TILE_M = 0.8
-CAMERA_DISC_RADIUS_M = 1.15  # every camera path stays within this distance of the room's centre
-OBJECT_KEEP_OUT_M = 1.5  # objects stay this far from the centre
-N_OBJECTS = 9
-PHOTOS = (
-    "astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "hubble_deep_field", "retina",
-    "colorwheel", "brick", "grass", "gravel", "camera", "moon", "coins", "cell", "page", "text",
-)
-
 
 @dataclass
 class SynthConfig:
@@ -78,6 +68,7 @@ class SynthConfig:
     height: int = 240
     frames: int = 60
     trajectory: str = "handheld"  # translation | turn | handheld
+    scene: str = "room"  # room | office | plain | corridor (see taichi_gs.synth_scenes)
     blur: str = "extreme"  # none | moderate | extreme
     seed: int = 0
     depth_noise: bool = True
@@ -89,6 +80,8 @@ class SynthConfig:
     def __post_init__(self) -> None:
         if self.trajectory not in TRAJECTORIES:
             raise ValueError(f"unknown trajectory {self.trajectory!r}: choose one of {', '.join(TRAJECTORIES)}")
+        if self.scene not in SCENES:
+            raise ValueError(f"unknown scene {self.scene!r}: choose one of {', '.join(SCENES)}")
         if self.blur not in BLUR_LEVELS:
             raise ValueError(f"unknown blur {self.blur!r}: choose one of {', '.join(BLUR_LEVELS)}")
         if self.width < 16 or self.height < 16:
@@ -101,15 +94,6 @@ class SynthConfig:
             raise ValueError(f"fov_deg must lie in [10, 150], got {self.fov_deg}")
         if not self.depth_scale > 0:
             raise ValueError(f"depth_scale must be positive, got {self.depth_scale}")
-
-
-@dataclass(frozen=True)
-class Scene:
-    """Ray-castable room: primitive rows (see :mod:`taichi_gs.kernels.raycast`) and textures."""
-
-    prims: np.ndarray  # (n, PRIM_COLUMNS) float32
-    textures: np.ndarray  # (n_textures, S, S, 3) float32 in [0, 1]
-    room_half: np.ndarray  # (3,) half extents of the room, centred at the world origin
 
 
 # ---------------------------------------------------------------------------------------------
@@ -129,114 +113,24 @@ def _downscaled(K: np.ndarray, factor: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
-# Scene
-
-
-@functools.lru_cache(maxsize=None)
-def _photo(name: str) -> np.ndarray:
-    """A bundled scikit-image photo as a square float32 RGB texture."""
-    from skimage import data
-
-    image = np.asarray(getattr(data, name)())
-    if image.ndim == 2:
-        image = np.repeat(image[..., None], 3, axis=2)
-    image = image[..., :3].astype(np.float32) / 255.0
-    h, w = image.shape[:2]
-    side = min(h, w)
-    top, left = (h - side) // 2, (w - side) // 2
-    square = image[top:top + side, left:left + side]
-    return cv2.resize(square, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_AREA)
-
-
-def _value_noise(rng: np.random.Generator) -> np.ndarray:
-    """Smooth multi-octave noise stretched to [0, 1] on the texture grid (coarse blobs to ~4-texel grain)."""
-    noise = np.zeros((TEXTURE_SIZE, TEXTURE_SIZE), np.float32)
-    for cells, weight in ((4, 0.45), (16, 0.3), (64, 0.25)):
-        grid = rng.random((cells, cells)).astype(np.float32)
-        noise += weight * cv2.resize(grid, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_CUBIC)
-    return (noise - noise.min()) / (noise.max() - noise.min())
-
-
-def _surface_texture(name: str, rng: np.random.Generator) -> np.ndarray:
-    """A photo tinted and mixed with procedural noise, so even its flat or dark parts carry detail."""
-    photo = _photo(name) * rng.uniform(0.6, 1.0, 3).astype(np.float32)
-    noise = _value_noise(rng)[..., None]
-    tint = rng.uniform(0.3, 1.0, 3).astype(np.float32)
-    return np.clip(0.7 * photo * (0.75 + 0.5 * noise) + 0.3 * noise * tint, 0.0, 1.0)
-
-
-def _prim_row(kind: int, centre, half, tile: float, textures, yaw: float = 0.0) -> np.ndarray:
-    from .kernels.raycast import PRIM_COLUMNS
-
-    row = np.zeros(PRIM_COLUMNS, np.float32)
-    row[0] = kind
-    row[1:4] = centre
-    row[4:7] = half
-    row[7:9] = math.cos(yaw), math.sin(yaw)
-    row[9] = tile
-    row[10] = max(2, 2 * round(math.pi * half[0] / tile))  # even tile count around the axis
-    row[11:17] = textures
-    return row
-
-
-def _object_row(kind: int, angle: float, room_half: np.ndarray, texture: int, rng: np.random.Generator) -> np.ndarray:
-    """One object on a bearing from the centre, kept out of the camera disc and inside the room."""
-    from .kernels.raycast import CYLINDER, SPHERE
-
-    floor_y = room_half[1]
-    if kind == SPHERE:
-        r = rng.uniform(0.2, 0.42)
-        half, reach, yaw = np.array([r, r, r]), r, 0.0
-        y = rng.uniform(-0.6, floor_y - r)
-    elif kind == CYLINDER:
-        r, h = rng.uniform(0.15, 0.32), rng.uniform(0.4, 1.0)
-        half, reach, yaw = np.array([r, h, r]), r, 0.0
-        y = floor_y - h
-    else:
-        half = rng.uniform([0.18, 0.15, 0.18], [0.4, 0.45, 0.4])
-        reach, yaw = float(np.hypot(half[0], half[2])), rng.uniform(0.0, math.pi)
-        y = rng.uniform(-0.5, floor_y - half[1])
-    direction = np.array([math.sin(angle), math.cos(angle)])
-    near = OBJECT_KEEP_OUT_M + reach
-    far = min((room_half[0] - 0.05 - reach) / max(abs(direction[0]), 1e-6),
-              (room_half[2] - 0.05 - reach) / max(abs(direction[1]), 1e-6))
-    distance = rng.uniform(near, max(near, far))
-    centre = [distance * direction[0], y, distance * direction[1]]
-    return _prim_row(kind, centre, half, OBJECT_TILE_M, [texture] * 6, yaw)
-
-
-@functools.lru_cache(maxsize=8)
-def build_scene(seed: int) -> Scene:
-    """The room and its objects for a seed (sizes, placement, photos and noise all seeded)."""
-    from .kernels.raycast import BOX, CYLINDER, ROOM, SPHERE
-
-    rng = np.random.default_rng([seed, 0x5CE7E])
-    room_half = np.array([rng.uniform(2.8, 3.3), rng.uniform(1.3, 1.45), rng.uniform(2.8, 3.3)])
-    n_surfaces = 6 + N_OBJECTS
-    names = [PHOTOS[i % len(PHOTOS)] for i in rng.permutation(max(n_surfaces, len(PHOTOS)))[:n_surfaces]]
-    textures = np.stack([_surface_texture(name, rng) for name in names])
-    rows = [_prim_row(ROOM, [0.0, 0.0, 0.0], room_half, WALL_TILE_M, list(range(6)))]
-    kinds = rng.permutation([SPHERE, CYLINDER, BOX] * (N_OBJECTS // 3))
-    sector = 2.0 * math.pi / N_OBJECTS
-    for i, kind in enumerate(kinds):
-        angle = i * sector + rng.uniform(-0.3, 0.3) * sector
-        rows.append(_object_row(int(kind), angle, room_half, 6 + i, rng))
-    return Scene(np.stack(rows), textures, room_half)
+# Rendering
 
 
 def render_view(
-    pose: np.ndarray, K: np.ndarray, width: int, height: int, seed: int = 0
+    pose: np.ndarray, K: np.ndarray, width: int, height: int, seed: int = 0, scene: str = "room"
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sharp colour (H x W x 3 float32 in [0, 1]) and exact z-depth (H x W float32, metres)."""
-    return _render_mean([pose], K, width, height, seed)
+    return _render_mean([pose], K, width, height, seed, scene)
 
 
-def _render_mean(poses, K: np.ndarray, width: int, height: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def _render_mean(
+    poses, K: np.ndarray, width: int, height: int, seed: int, scene: str = "room"
+) -> tuple[np.ndarray, np.ndarray]:
     """Mean colour over poses, depth at the first pose."""
     from .kernels.raycast import render
 
-    scene = build_scene(seed)
-    rgb, depth = render(np.asarray(poses), K, width, height, scene.prims, scene.textures)
+    room = build_scene(seed, scene)
+    rgb, depth = render(np.asarray(poses), K, width, height, room.prims, room.textures)
     return np.clip(rgb, 0.0, 1.0), depth
 
 
@@ -326,7 +220,7 @@ def _mean_frame_motion_px(config: SynthConfig, mid_poses: np.ndarray) -> float:
     w, h = max(config.width // factor, 8), max(config.height // factor, 8)
     motions = []
     for a, b in zip(mid_poses[:-1], mid_poses[1:]):
-        _, depth = render_view(a, small, w, h, config.seed)
+        _, depth = render_view(a, small, w, h, config.seed, config.scene)
         lengths, _ = _path_lengths(_point_tracks(depth, small, a, [a, b]))
         # No point in front of both cameras (a half turn between frames): count a full image width.
         motions.append(factor * lengths.mean() if lengths.size else float(config.width))
@@ -466,13 +360,13 @@ def render_frame(
 ) -> tuple[FrameImages, FrameStats]:
     """Sharp view and depth at mid-exposure, blurred colour over the exposure, sensor depth."""
     K = camera_matrix(config)
-    sharp, depth = render_view(mid, K, config.width, config.height, config.seed)
+    sharp, depth = render_view(mid, K, config.width, config.height, config.seed, config.scene)
     smear_mean, smear_max = exposure_smear(depth, K, mid, exposure[0], exposure[1])
     count = subframe_count(smear_max)
     blurred = sharp
     if count > 1:
         poses = exposure_poses(exposure[0], exposure[1], count)
-        blurred, _ = _render_mean(poses, K, config.width, config.height, config.seed)
+        blurred, _ = _render_mean(poses, K, config.width, config.height, config.seed, config.scene)
     rng = np.random.default_rng([config.seed, index, 0xDE97])
     raw = encode_depth(sensor_depth(depth, config, rng), config.depth_scale)
     return FrameImages(blurred, sharp, raw), FrameStats(count, smear_mean, smear_max)

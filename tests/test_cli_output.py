@@ -21,7 +21,7 @@ from rich.progress import Progress
 from typer.testing import CliRunner
 
 from taichi_gs import synth as synth_module
-from taichi_gs.cli import SynthBlur, SynthTrajectory, app
+from taichi_gs.cli import SynthBlur, SynthScene, SynthTrajectory, app
 from taichi_gs.cli_options import COMMAND_ORDER, hoist_global_options
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.io.trajectory import write_tum
@@ -63,11 +63,13 @@ def test_every_synth_option_has_help():
 def test_synth_choices_match_the_generator():
     assert tuple(t.value for t in SynthTrajectory) == synth_module.TRAJECTORIES
     assert tuple(b.value for b in SynthBlur) == synth_module.BLUR_LEVELS
+    assert tuple(s.value for s in SynthScene) == synth_module.SCENES
 
 
 @pytest.mark.parametrize("args, word", [
     (["synth", "OUT", "--trajectory", "circle"], "circle"),
     (["synth", "OUT", "--blur", "heavy"], "heavy"),
+    (["synth", "OUT", "--scene", "cave"], "cave"),
     (["reconstruct", "IN", "--out", "OUT", "--force", "everything"], "everything"),
     (["deblur", "OUT", "--holdout", "1"], "--holdout"),
     (["deblur", "OUT", "--holdout", "some"], "some"),

@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from taichi_gs.geometry import backproject, interpolate, invert, project, so3_log, transform
+from taichi_gs.geometry import backproject, interpolate, invert, pose_from_rt, project, so3_exp, so3_log, transform
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.io.trajectory import read_tum, read_tum_rows
 from taichi_gs.synth import (
-    CAMERA_DISC_RADIUS_M, DEPTH_NOISE_QUADRATIC, SUBFRAME_STEP_PX, TRAJECTORIES, SynthConfig, build_scene,
+    CAMERA_DISC_RADIUS_M, DEPTH_NOISE_QUADRATIC, SCENES, SUBFRAME_STEP_PX, TRAJECTORIES, SynthConfig, build_scene,
     camera_matrix, generate, render_view, subframe_count, trajectory_poses,
 )
 
@@ -173,20 +173,23 @@ def test_exposure_start_and_end_interpolate_to_the_mid_pose(trajectory):
     np.testing.assert_allclose(sharp_exposure, np.stack([mids, mids], axis=1))
 
 
+@pytest.mark.parametrize("scene", SCENES)
 @pytest.mark.parametrize("trajectory", TRAJECTORIES)
-def test_every_trajectory_stays_in_the_room_overlaps_and_generates(tmp_path, trajectory):
-    config = _clean(frames=30, trajectory=trajectory, width=48, height=36)  # turn: 12 degrees a frame
+def test_every_trajectory_stays_in_the_room_overlaps_and_generates(tmp_path, trajectory, scene):
+    config = _clean(frames=30, trajectory=trajectory, scene=scene, width=48, height=36)  # turn: 12 deg a frame
     _, mids, _ = trajectory_poses(config)
     assert np.all(np.hypot(mids[:, 0, 3], mids[:, 2, 3]) <= CAMERA_DISC_RADIUS_M)
-    assert np.all(np.abs(mids[:, :3, 3]) < build_scene(config.seed).room_half - 0.5)
+    assert np.all(np.abs(mids[:, :3, 3]) < build_scene(config.seed, scene).room_half - 0.5)
     K = camera_matrix(config)
     for a, b in zip(mids[:-1], mids[1:]):
-        _, depth = render_view(a, K, 48, 36, config.seed)
+        _, depth = render_view(a, K, 48, 36, config.seed, scene)
+        assert depth.min() > 0.3, "the camera must never stand in or against anything"
         uv = project(transform(invert(b) @ a, backproject(depth, K)), K)
         overlap = np.mean((uv[..., 0] >= 0) & (uv[..., 0] <= 47) & (uv[..., 1] >= 0) & (uv[..., 1] <= 35))
         assert overlap > 0.6, "consecutive frames must overlap enough to track"
     root = generate(SynthConfig(**{**vars(config), "frames": 2}), tmp_path / trajectory)
     assert all(_depth(root / f"depth/{i:06d}.png").min() > 0 for i in range(2))
+    assert json.loads((root / "synth.json").read_text())["config"]["scene"] == scene
 
 
 def test_turn_makes_one_full_turn_and_translation_keeps_its_orientation():
@@ -225,3 +228,60 @@ def test_objects_stay_inside_the_room_and_clear_of_the_camera_disc(seed):
     assert np.all(np.abs(centre[:, [0, 2]]) + reach[:, None] <= scene.room_half[[0, 2]])
     assert np.all(np.abs(centre[:, 1]) + half[:, 1] <= scene.room_half[1] + 1e-6)
     assert np.all(np.hypot(centre[:, 0], centre[:, 2]) - reach >= CAMERA_DISC_RADIUS_M + 0.3)
+
+
+def _box_corners_xz(row: np.ndarray) -> np.ndarray:
+    """The four horizontal corners of a box primitive in world (x, z), its yaw applied."""
+    c, s = row[7], row[8]
+    local = np.array([[sx * row[4], sz * row[6]] for sx in (-1, 1) for sz in (-1, 1)])
+    return row[[1, 3]] + np.stack([c * local[:, 0] + s * local[:, 1], -s * local[:, 0] + c * local[:, 1]], axis=1)
+
+
+def _nearest_horizontal_distance(row: np.ndarray) -> float:
+    """Distance from the room's vertical axis to the nearest point of a primitive's footprint."""
+    if row[0] != 3.0:  # sphere or cylinder
+        return float(np.hypot(row[1], row[3]) - row[4])
+    c, s = row[7], row[8]
+    x, z = -row[1], -row[3]  # the origin in the box's frame (yaw undone)
+    local = np.array([c * x - s * z, s * x + c * z])
+    outside = np.maximum(np.abs(local) - row[[4, 6]], 0.0)
+    return float(np.hypot(*outside))
+
+
+@pytest.mark.parametrize("scene", SCENES)
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4])
+def test_every_scene_kind_keeps_its_objects_inside_and_clear_of_the_camera_disc(scene, seed):
+    room = build_scene(seed, scene)
+    objects = room.prims[1:]
+    assert room.prims[0, 0] == 0.0 and len(objects) >= 3
+    for row in objects:
+        assert _nearest_horizontal_distance(row) >= CAMERA_DISC_RADIUS_M + 0.3
+        corners = _box_corners_xz(row) if row[0] == 3.0 else row[[1, 3]] + row[4] * np.array([[1, 1], [-1, -1]])
+        assert np.all(np.abs(corners) <= room.room_half[[0, 2]] + 1e-5)
+        assert abs(row[2]) + row[5] <= room.room_half[1] + 1e-5
+    assert room.textures.shape[1:] == (256, 256, 3) and objects[:, 11:17].max() < len(room.textures)
+
+
+def test_scene_kinds_differ_in_size_shape_and_texture():
+    offices = np.stack([build_scene(seed, "office").room_half for seed in range(6)])
+    assert np.ptp(offices[:, [0, 2]]) > 1.0, "office sizes must vary with the seed"
+    corridors = np.stack([build_scene(seed, "corridor").room_half for seed in range(4)])
+    assert np.all(corridors[:, 2] > 2.3 * corridors[:, 0]), "a corridor is long and narrow"
+    assert np.all(corridors[:, 2] * 2 * 5000 < 65535), "the far end's depth must fit in 16 bits"
+    config = _clean()
+    K = camera_matrix(config)
+    views = [pose_from_rt(so3_exp([0.0, yaw, 0.0]), np.zeros(3)) for yaw in np.linspace(0, 2 * math.pi, 9)[:8]]
+
+    def texture(scene: str) -> float:
+        grads = []
+        for pose in views:
+            grey = render_view(pose, K, config.width, config.height, 0, scene)[0].mean(axis=2)
+            grads.append(np.abs(np.diff(grey, axis=1)).mean() + np.abs(np.diff(grey, axis=0)).mean())
+        return float(np.median(grads))
+
+    assert texture("plain") < 0.5 * texture("room"), "plain walls must carry little texture"
+
+
+def test_unknown_scene_is_refused_with_the_choices():
+    with pytest.raises(ValueError, match="room, office, plain, corridor"):
+        SynthConfig(scene="cave")
