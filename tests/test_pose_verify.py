@@ -53,3 +53,60 @@ def test_pair_without_overlap_is_weak_and_keeps_the_prior():
     result = estimate_relative_pose(color_t, np.zeros_like(depth_t), color_t1, depth_t1, K, config=PoseConfig(), prior=prior)
     assert result.weak and result.estimate == "constant-velocity"
     np.testing.assert_array_equal(result.transform, prior)
+
+
+def _wall_pair(distance_m: float):
+    """Two noisy 160x120 views of one plain painted wall (synth's `plain` room) from ``distance_m``, the
+    second 3 cm aside and 0.6 deg turned: colour, depth (sensor-like noise), K and the true A -> B."""
+    from taichi_gs.synth import SynthConfig, camera_matrix, render_view
+
+    K = camera_matrix(SynthConfig(width=160, height=120))
+    A = np.eye(4)
+    A[:3, 3] = [0.3, 0.0, 3.3 - distance_m]  # the plain room of seed 0 has its +z wall at z = 3.31
+    B = A @ se3_exp(np.array([0.03, 0.005, 0.0, 0.0, 0.01, 0.0]))
+    rng = np.random.default_rng(0)
+    views = []
+    for pose in (A, B):
+        color, depth = render_view(pose, K, 160, 120, 0, "plain")
+        color = np.clip(color + rng.normal(0, 0.01, color.shape), 0, 1).astype(np.float32)
+        views.append((color, depth + rng.normal(0, 1, depth.shape) * 0.0015 * depth ** 2))
+    return views, K, invert(B) @ A
+
+
+def test_constraint_ratio_tells_a_single_wall_from_a_corner():
+    from taichi_gs.geometry import pose_from_rt, so3_exp
+    from taichi_gs.icp import reliable_depth_mask, translation_constraint_ratio
+    from taichi_gs.synth import SynthConfig, camera_matrix, render_view
+
+    (_, wall), _ = _wall_pair(1.3)[0]
+    K = camera_matrix(SynthConfig(width=160, height=120))
+    _, corner = render_view(pose_from_rt(so3_exp([0.0, 4.19, 0.0]), np.array([0.3, 0.0, 0.2])), K, 160, 120, 0, "room")
+    ratios = [translation_constraint_ratio(d, K, reliable_depth_mask(d, 0.1, 10.0, 0.05)) for d in (wall, corner)]
+    assert ratios[0] < 0.002 and ratios[1] > 0.05
+
+
+def test_degenerate_wall_pair_prefers_the_flow_candidate_over_a_slid_one():
+    import dataclasses
+
+    from taichi_gs.stages.pose import Candidate, _choose, _graph_edge
+
+    (frame_a, frame_b), K, true = _wall_pair(1.3)
+    config = PoseConfig()
+    views = tuple(frame_view(c, d, K, config.verify_settings()) for c, d in (frame_a, frame_b))
+    slid = se3_exp(np.array([0.01, 0.0, 0.0, 0.0, 0.0, 0.0])) @ true  # 1 cm along the wall
+    candidates = {"flow": Candidate(true), "rgbd-icp": Candidate(slid)}
+    rule_off = dataclasses.replace(config, verify_degenerate_ratio=0.0)
+    assert _choose(candidates, views, K, rule_off).estimate == "rgbd-icp"  # the score cannot tell them apart
+    chosen = _choose(candidates, views, K, config)
+    assert chosen.estimate == "flow" and np.allclose(chosen.transform, true)
+
+    class TwoFrames:
+        def color(self, i):
+            return (frame_a, frame_b)[i][0]
+
+        def depth(self, i):
+            return (frame_a, frame_b)[i][1]
+
+    chained = np.stack([np.eye(4), invert(se3_exp(np.array([0.0, 0.02, 0.0, 0.0, 0.0, 0.01])) @ true)])
+    assert _graph_edge(TwoFrames(), 0, 1, chained, K, rule_off, "skip", 1.0) is not None
+    assert _graph_edge(TwoFrames(), 0, 1, chained, K, config, "skip", 1.0) is None  # no edge joins a degenerate frame
