@@ -56,7 +56,6 @@ class FrameView:
     grid_points: np.ndarray  # N x 3 camera-frame points of the grid pixels
     grid_gray: np.ndarray  # N grey values there
     constraint_ratio: float  # how evenly the surfaces pin a translation (icp.translation_constraint_ratio)
-    texture: float  # median gradient magnitude of the smoothed grey image (grey levels per pixel)
 
 
 @dataclass(frozen=True)
@@ -89,8 +88,7 @@ def frame_view(color: np.ndarray, depth: np.ndarray, K: np.ndarray, settings: Ve
     grid[stride // 2::stride, stride // 2::stride] = True
     grid &= mask
     constraint = translation_constraint_ratio(depth, K, mask)
-    texture = float(np.median(np.hypot(*np.gradient(gray))))
-    return FrameView(gray, depth, normals, points[grid], gray[grid], constraint, texture)
+    return FrameView(gray, depth, normals, points[grid], gray[grid], constraint)
 
 
 def depth_normals(points: np.ndarray, mask: np.ndarray) -> np.ndarray:

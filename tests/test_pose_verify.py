@@ -68,7 +68,7 @@ def _wall_pair(distance_m: float):
     views = []
     for pose in (A, B):
         color, depth = render_view(pose, K, 160, 120, 0, "plain")
-        color = np.clip(color + rng.normal(0, 0.003, color.shape), 0, 1).astype(np.float32)
+        color = np.clip(color + rng.normal(0, 0.01, color.shape), 0, 1).astype(np.float32)
         views.append((color, depth + rng.normal(0, 1, depth.shape) * 0.0015 * depth ** 2))
     return views, K, invert(B) @ A
 
@@ -83,20 +83,6 @@ def test_constraint_ratio_tells_a_single_wall_from_a_corner():
     _, corner = render_view(pose_from_rt(so3_exp([0.0, 4.19, 0.0]), np.array([0.3, 0.0, 0.2])), K, 160, 120, 0, "room")
     ratios = [translation_constraint_ratio(d, K, reliable_depth_mask(d, 0.1, 10.0, 0.05)) for d in (wall, corner)]
     assert ratios[0] < 0.002 and ratios[1] > 0.05
-
-
-def test_only_plain_walls_count_as_degenerate_not_textured_ones():
-    from taichi_gs.geometry import pose_from_rt, so3_exp
-    from taichi_gs.stages.pose import _degenerate
-    from taichi_gs.synth import render_view
-
-    config = PoseConfig()
-    (plain, _), K, _ = _wall_pair(1.3)
-    photo = render_view(pose_from_rt(so3_exp([0.0, 0.0, 0.0]), np.array([0.3, 0.0, 1.5])), K, 160, 120, 0, "room")
-    views = [frame_view(color, depth, K, config.verify_settings()) for color, depth in (plain, photo)]
-    assert all(v.constraint_ratio < config.verify_degenerate_ratio for v in views)  # both one flat wall
-    assert views[0].texture < config.verify_degenerate_texture < views[1].texture
-    assert _degenerate((views[0], views[0]), config) and not _degenerate((views[1], views[1]), config)
 
 
 def test_degenerate_wall_pair_prefers_the_flow_candidate_over_a_slid_one():

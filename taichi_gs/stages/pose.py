@@ -102,13 +102,10 @@ class PoseConfig:
     verify_margin: float = 0.02
     verify_preference: tuple = ("rgbd-icp", "rgbd-icp-prior", "icp", "icp-prior", "flow", "constant-velocity")
     verify_min_overlap: float = 0.2  # winner's overlap below it flags the pair weak
-    # [ours] where either frame is degenerate, its surfaces leaving a translation nearly free
-    # (FrameView.constraint_ratio below verify_degenerate_ratio: a wall, a wall and the floor) and its colour
-    # too plain to pin it (FrameView.texture below verify_degenerate_texture: painted walls, not posters),
-    # depth-driven candidates slide along that direction at an unchanged score: near-ties then go first to
-    # verify_degenerate_first, and no graph edge (skip, loop) joins such a frame. Ratio 0: off
+    # [ours] where either frame's surfaces leave a translation nearly free (FrameView.constraint_ratio below
+    # this: a wall, a wall and the floor), depth-driven candidates can slide along it at an unchanged score:
+    # near-ties then go first to these names, and no graph edge (skip, loop) joins such a frame. 0: off
     verify_degenerate_ratio: float = 0.005
-    verify_degenerate_texture: float = 0.003
     verify_degenerate_first: tuple = ("flow",)
     verify_grid_points: int = 3000
     verify_depth_sigma_m: float = 0.003
@@ -402,7 +399,7 @@ def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView]
     if np.isfinite(scores[name].score):
         tie = scores[name].score * (1.0 + config.verify_margin)
         preference = config.verify_preference if preference is None else preference
-        if _degenerate(views, config):
+        if min(v.constraint_ratio for v in views) < config.verify_degenerate_ratio:
             preference = tuple(config.verify_degenerate_first) + preference
         name = next((n for n in preference if n in scores and scores[n].score <= tie), name)
     elif FROM_CONSTANT_VELOCITY in scores:
@@ -419,12 +416,6 @@ def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView]
     elif best.overlap < config.verify_min_overlap:
         result.weak, result.reason = True, f"overlap {best.overlap:.2f} < {config.verify_min_overlap}"
     return result
-
-
-def _degenerate(views: tuple[FrameView, FrameView], config: PoseConfig) -> bool:
-    """Whether either frame is too plain, in shape and colour, to pin a translation (see PoseConfig)."""
-    return any(v.constraint_ratio < config.verify_degenerate_ratio and v.texture < config.verify_degenerate_texture
-               for v in views)
 
 
 def _icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray, config: PoseConfig):
@@ -601,7 +592,7 @@ def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, conf
     color_i, depth_i, color_j, depth_j = sequence.color(i), sequence.depth(i), sequence.color(j), sequence.depth(j)
     settings = config.verify_settings()
     views = (frame_view(color_i, depth_i, K, settings), frame_view(color_j, depth_j, K, settings))
-    if _degenerate(views, config):
+    if min(v.constraint_ratio for v in views) < config.verify_degenerate_ratio:
         return None
     candidates = {"chain": Candidate(init)}
     if config.graph_icp:
