@@ -44,30 +44,6 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, mask: np.ndarray, colors: np.n
     return cloud
 
 
-def translation_constraint_ratio(depth: np.ndarray, K: np.ndarray, mask: np.ndarray, blocks_across: int = 40) -> float:
-    """[ours] Smallest over largest eigenvalue of sum(n n^T) over the surface normals of a depth frame: how
-    evenly its surfaces pin a translation. Near 0 when one direction is left free (a single wall, a wall
-    and the floor), so that geometric alignment can slide along it; 0 when too little is valid to tell.
-    Normals come from the point map averaged over square blocks (``blocks_across`` per image width,
-    about 3 cm at 1 m for 320 px at 60 degrees), which keeps depth noise out of them."""
-    h, w = depth.shape
-    b = max(1, w // blocks_across)
-    rows, cols = h // b, w // b
-    points = backproject(np.where(mask, depth, 0.0), K)[: rows * b, : cols * b].reshape(rows, b, cols, b, 3)
-    valid = mask[: rows * b, : cols * b].reshape(rows, b, cols, b)
-    full = valid.mean(axis=(1, 3)) > 0.75
-    mean = points.sum(axis=(1, 3)) / np.maximum(valid.sum(axis=(1, 3)), 1)[..., None]
-    du, dv = mean[1:-1, 2:] - mean[1:-1, :-2], mean[2:, 1:-1] - mean[:-2, 1:-1]
-    ok = full[1:-1, 2:] & full[1:-1, :-2] & full[2:, 1:-1] & full[:-2, 1:-1] & full[1:-1, 1:-1]
-    normals = np.cross(du, dv)[ok]
-    length = np.linalg.norm(normals, axis=1)
-    normals = normals[length > 0] / length[length > 0, None]
-    if len(normals) < 10:
-        return 0.0
-    eigenvalues = np.linalg.eigvalsh(normals.T @ normals)
-    return float(eigenvalues[0] / eigenvalues[2])
-
-
 MIN_ICP_POINTS = 3  # fewer points than this in either cloud: no alignment is possible
 
 

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from .geometry import backproject
-from .icp import reliable_depth_mask, translation_constraint_ratio
+from .icp import reliable_depth_mask
 from .stages.pose_losses import bilinear, bilinear_depth
 
 
@@ -55,7 +55,6 @@ class FrameView:
     normals: np.ndarray  # H x W x 3 camera-frame unit normals (NaN where undefined)
     grid_points: np.ndarray  # N x 3 camera-frame points of the grid pixels
     grid_gray: np.ndarray  # N grey values there
-    constraint_ratio: float  # how evenly the surfaces pin a translation (icp.translation_constraint_ratio)
 
 
 @dataclass(frozen=True)
@@ -87,8 +86,7 @@ def frame_view(color: np.ndarray, depth: np.ndarray, K: np.ndarray, settings: Ve
     grid = np.zeros_like(mask)
     grid[stride // 2::stride, stride // 2::stride] = True
     grid &= mask
-    constraint = translation_constraint_ratio(depth, K, mask)
-    return FrameView(gray, depth, normals, points[grid], gray[grid], constraint)
+    return FrameView(gray, depth, normals, points[grid], gray[grid])
 
 
 def depth_normals(points: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -102,11 +102,6 @@ class PoseConfig:
     verify_margin: float = 0.02
     verify_preference: tuple = ("rgbd-icp", "rgbd-icp-prior", "icp", "icp-prior", "flow", "constant-velocity")
     verify_min_overlap: float = 0.2  # winner's overlap below it flags the pair weak
-    # [ours] where either frame's surfaces leave a translation nearly free (FrameView.constraint_ratio below
-    # this: a wall, a wall and the floor), depth-driven candidates can slide along it at an unchanged score:
-    # near-ties then go first to these names, and no graph edge (skip, loop) joins such a frame. 0: off
-    verify_degenerate_ratio: float = 0.005
-    verify_degenerate_first: tuple = ("flow",)
     verify_grid_points: int = 3000
     verify_depth_sigma_m: float = 0.003
     verify_depth_sigma_quadratic: float = 0.0025
@@ -391,16 +386,13 @@ def _candidates(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, 
 def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView], K: np.ndarray,
             config: PoseConfig, preference: tuple[str, ...] | None = None) -> RelativePose:
     """The candidate with the lowest verification score (near-ties, within ``verify_margin`` of it, go to
-    the earliest in ``preference``, by default ``verify_preference``, led by ``verify_degenerate_first``
-    where a frame's geometry is degenerate); weak if its score or overlap is poor."""
+    the earliest in ``verify_preference``); weak if its score or overlap is poor."""
     settings = config.verify_settings()
     scores: dict[str, Verification] = {name: verify(c.transform, *views, K, settings) for name, c in candidates.items()}
     name = min(scores, key=lambda n: scores[n].score)
     if np.isfinite(scores[name].score):
         tie = scores[name].score * (1.0 + config.verify_margin)
         preference = config.verify_preference if preference is None else preference
-        if min(v.constraint_ratio for v in views) < config.verify_degenerate_ratio:
-            preference = tuple(config.verify_degenerate_first) + preference
         name = next((n for n in preference if n in scores and scores[n].score <= tie), name)
     elif FROM_CONSTANT_VELOCITY in scores:
         name = FROM_CONSTANT_VELOCITY
@@ -587,13 +579,9 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
 def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig, kind: str,
                 max_score: float) -> Edge | None:
     """A verified edge camera i -> camera j started from the current poses, or None when it is weak, scores
-    above ``max_score``, is no better than the poses it started from or joins a degenerate frame."""
+    above ``max_score`` or is no better than the poses it started from."""
     init = invert(poses[j]) @ poses[i]
     color_i, depth_i, color_j, depth_j = sequence.color(i), sequence.depth(i), sequence.color(j), sequence.depth(j)
-    settings = config.verify_settings()
-    views = (frame_view(color_i, depth_i, K, settings), frame_view(color_j, depth_j, K, settings))
-    if min(v.constraint_ratio for v in views) < config.verify_degenerate_ratio:
-        return None
     candidates = {"chain": Candidate(init)}
     if config.graph_icp:
         mask_i = reliable_depth_mask(depth_i, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
@@ -607,6 +595,8 @@ def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, conf
                                 (config.min_depth_m, config.max_depth_m))
         if refined is not None and np.all(np.isfinite(refined)):
             candidates[f"rgbd-{name}"] = Candidate(refined)
+    settings = config.verify_settings()
+    views = (frame_view(color_i, depth_i, K, settings), frame_view(color_j, depth_j, K, settings))
     chosen = _choose(candidates, views, K, config, ("rgbd-icp-chain", "rgbd-chain", "icp-chain", "chain"))
     if chosen.weak or chosen.estimate == "chain" or not chosen.score <= max_score:
         return None
