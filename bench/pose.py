@@ -10,6 +10,7 @@ RedKitchen slice of ../shared/data (``bench/realdata.py``) at every 1st, 2nd, 3r
 Methods (each from identity at frame 0):
 - ours: the stage as shipped (verified candidates + robust pose graph)
 - ours no graph: the same run's verified pairs, chained (graph ablation, no extra cost)
+- ours no flow check: ours with candidates scored without their disagreement with the measured flow
 - ours no verify: the flow -> ICP -> RGB-D odometry path behind the method's guards, no graph
 - method: the paper's path only (flow solve, then point-to-plane ICP), chained
 - cand:NAME: one candidate of ours' run (flow, icp, icp-prior, rgbd-icp, ...), chained (verification ablation)
@@ -48,6 +49,7 @@ SEVEN_SCENES = Path("/work/shared/data/7scenes_redkitchen_000-249")
 METHOD_ONLY = {"verify": False, "rgbd_refine": False, "icp_from_prior": False, "pose_graph": False, "icp_max_points": 80000}
 OURS = {
     "ours": {},
+    "ours no flow check": {"verify_flow_weight": 0.0},
     "ours no verify": {"verify": False, "pose_graph": False},
     "method": METHOD_ONLY,
 }

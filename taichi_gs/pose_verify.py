@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .flow import rigid_flow
 from .geometry import backproject
 from .icp import reliable_depth_mask
 from .stages.pose_losses import bilinear, bilinear_depth
@@ -65,9 +66,34 @@ class Verification:
     geometric: float
     photometric: float
     overlap: float
+    flow: float = float("nan")  # disagreement with the measured optical flow (flow_disagreement), when used
 
     def to_dict(self) -> dict:
         return {k: round(float(v), 5) if np.isfinite(v) else None for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class FlowCheck:
+    """[ours] The pair's measured optical flow (camera a -> b, H x W x 2 pixels) and where it is trusted
+    (forward-backward consistent): what a candidate's rigid flow is compared with."""
+
+    flow: np.ndarray
+    trusted: np.ndarray
+
+
+def flow_disagreement(T: np.ndarray, depth: np.ndarray, K: np.ndarray, check: FlowCheck, scale_px: float) -> float:
+    """[ours] Mean of min(r / scale_px, 1)^2 over trusted pixels with depth, r the distance (pixels) between
+    the flow that T (camera a -> b) induces on a's depth and the measured flow; 1 when nothing compares.
+    Candidates within a pixel of the flow score alike; one that slid along a plain wall, which depth and
+    colour residuals cannot see, disagrees by many pixels."""
+    if not np.all(np.isfinite(T)):
+        return 1.0
+    rigid = rigid_flow(depth, K, T)
+    valid = check.trusted & np.all(np.isfinite(rigid), axis=-1) & np.all(np.isfinite(check.flow), axis=-1)
+    if not valid.any():
+        return 1.0
+    r = np.linalg.norm(rigid[valid] - check.flow[valid], axis=-1)
+    return float(np.mean(np.minimum(r / scale_px, 1.0) ** 2))
 
 
 def frame_view(color: np.ndarray, depth: np.ndarray, K: np.ndarray, settings: VerifySettings = VerifySettings()) -> FrameView:

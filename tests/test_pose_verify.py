@@ -53,3 +53,43 @@ def test_pair_without_overlap_is_weak_and_keeps_the_prior():
     result = estimate_relative_pose(color_t, np.zeros_like(depth_t), color_t1, depth_t1, K, config=PoseConfig(), prior=prior)
     assert result.weak and result.estimate == "constant-velocity"
     np.testing.assert_array_equal(result.transform, prior)
+
+
+def _wall_pair(distance_m: float):
+    """Two noisy 160x120 views of one plain painted wall (synth's `plain` room) from ``distance_m``, the
+    second 3 cm aside and 0.6 deg turned: (colour, depth) of each, K and the true transform A -> B."""
+    from taichi_gs.synth import SynthConfig, camera_matrix, render_view
+
+    K = camera_matrix(SynthConfig(width=160, height=120))
+    A = np.eye(4)
+    A[:3, 3] = [0.3, 0.0, 3.3 - distance_m]  # the plain room of seed 0 has its +z wall at z = 3.31
+    B = A @ se3_exp(np.array([0.03, 0.005, 0.0, 0.0, 0.01, 0.0]))
+    rng = np.random.default_rng(0)
+    frames = []
+    for pose in (A, B):
+        color, depth = render_view(pose, K, 160, 120, 0, "plain")
+        color = np.clip(color + rng.normal(0, 0.003, color.shape), 0, 1).astype(np.float32)
+        frames.append((color, depth + rng.normal(0, 1, depth.shape) * 0.0015 * depth ** 2))
+    return frames, K, invert(B) @ A
+
+
+def test_flow_check_catches_a_slide_along_a_plain_wall_that_the_score_misses():
+    import dataclasses
+
+    from taichi_gs.flow import rigid_flow
+    from taichi_gs.pose_verify import FlowCheck, flow_disagreement
+    from taichi_gs.stages.pose import Candidate, _choose
+
+    (frame_a, frame_b), K, true = _wall_pair(1.3)
+    config = PoseConfig()
+    views = tuple(frame_view(c, d, K, config.verify_settings()) for c, d in (frame_a, frame_b))
+    slid = se3_exp(np.array([0.01, 0.0, 0.0, 0.0, 0.0, 0.0])) @ true  # 1 cm along the wall: ~1 px
+    candidates = {"flow": Candidate(true), "rgbd-icp": Candidate(slid)}
+    measured = rigid_flow(views[0].depth, K, true)
+    check = FlowCheck(measured, np.all(np.isfinite(measured), axis=-1))
+    assert flow_disagreement(true, views[0].depth, K, check, 2.0) < 1e-6
+    assert flow_disagreement(slid, views[0].depth, K, check, 2.0) > 0.1
+    no_check = dataclasses.replace(config, verify_flow_weight=0.0)
+    assert _choose(candidates, views, K, no_check, flow_check=check).estimate == "rgbd-icp"  # score alone: blind
+    chosen = _choose(candidates, views, K, config, flow_check=check)
+    assert chosen.estimate == "flow" and chosen.candidates["rgbd-icp"]["flow"] > 0.1

@@ -30,7 +30,7 @@ from ..io import jsonout
 from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
 from ..pose_graph import Edge, optimise
-from ..pose_verify import FrameView, Verification, VerifySettings, frame_view, verify
+from ..pose_verify import FlowCheck, FrameView, Verification, VerifySettings, flow_disagreement, frame_view, verify
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .pose_solver import SolverSettings, solve
@@ -102,6 +102,11 @@ class PoseConfig:
     verify_margin: float = 0.02
     verify_preference: tuple = ("rgbd-icp", "rgbd-icp-prior", "icp", "icp-prior", "flow", "constant-velocity")
     verify_min_overlap: float = 0.2  # winner's overlap below it flags the pair weak
+    # [ours] add this x the candidate's disagreement with the pair's measured optical flow (0..1, capped at
+    # verify_flow_scale_px per pixel, at 320 px width) to its score: on plain walls depth and colour residuals
+    # cannot see a candidate slide along the wall, the flow can. 0: off
+    verify_flow_weight: float = 0.05
+    verify_flow_scale_px: float = 4.0
     verify_grid_points: int = 3000
     verify_depth_sigma_m: float = 0.003
     verify_depth_sigma_quadratic: float = 0.0025
@@ -318,8 +323,14 @@ def _align(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth
         if config.rgbd_refine and result.estimate == FROM_ICP:
             _refine_with_rgbd(result, color_t, depth_t, color_t1, depth_t1, K, config)
     else:
+        check = None
+        if config.verify_flow_weight > 0:
+            trusted = np.all(np.isfinite(flow), axis=-1)
+            if backward_flow is not None:
+                trusted &= forward_backward_mask(flow, backward_flow)
+            check = FlowCheck(flow, trusted)
         result = _choose(_candidates(color_t, depth_t, color_t1, depth_t1, K, source_mask, flow_T, prior, config),
-                         views, K, config)
+                         views, K, config, flow_check=check)
         result.flow_transform, result.points, result.iterations = flow_T, len(samples.points), iterations
         if flow_T is None:
             result.reason = "; ".join(filter(None, [reason, result.reason]))
@@ -384,11 +395,18 @@ def _candidates(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, 
 
 
 def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView], K: np.ndarray,
-            config: PoseConfig, preference: tuple[str, ...] | None = None) -> RelativePose:
+            config: PoseConfig, preference: tuple[str, ...] | None = None,
+            flow_check: FlowCheck | None = None) -> RelativePose:
     """The candidate with the lowest verification score (near-ties, within ``verify_margin`` of it, go to
-    the earliest in ``verify_preference``); weak if its score or overlap is poor."""
+    the earliest in ``verify_preference``); weak if its score or overlap is poor. With ``flow_check`` each
+    score also carries the candidate's disagreement with the measured flow (``verify_flow_weight``)."""
     settings = config.verify_settings()
     scores: dict[str, Verification] = {name: verify(c.transform, *views, K, settings) for name, c in candidates.items()}
+    if flow_check is not None:
+        scale = config.verify_flow_scale_px * views[0].depth.shape[1] / 320.0
+        for name, v in scores.items():
+            cost = flow_disagreement(candidates[name].transform, views[0].depth, K, flow_check, scale)
+            scores[name] = dataclasses.replace(v, score=v.score + config.verify_flow_weight * cost, flow=cost)
     name = min(scores, key=lambda n: scores[n].score)
     if np.isfinite(scores[name].score):
         tie = scores[name].score * (1.0 + config.verify_margin)
