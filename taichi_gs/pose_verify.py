@@ -26,7 +26,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .flow import rigid_flow
 from .geometry import backproject
 from .icp import reliable_depth_mask
 from .stages.pose_losses import bilinear, bilinear_depth
@@ -81,18 +80,26 @@ class FlowCheck:
     trusted: np.ndarray
 
 
-def flow_disagreement(T: np.ndarray, depth: np.ndarray, K: np.ndarray, check: FlowCheck, scale_px: float) -> float:
-    """[ours] Mean of min(r / scale_px, 1)^2 over trusted pixels with depth, r the distance (pixels) between
-    the flow that T (camera a -> b) induces on a's depth and the measured flow; 1 when nothing compares.
-    Candidates within a pixel of the flow score alike; one that slid along a plain wall, which depth and
-    colour residuals cannot see, disagrees by many pixels."""
+def flow_disagreement(T: np.ndarray, depth: np.ndarray, K: np.ndarray, check: FlowCheck, scale_px: float,
+                      stride: int = 1) -> float:
+    """[ours] Mean of min(r / scale_px, 1)^2 over trusted pixels with depth (every ``stride``-th row and
+    column), r the distance (pixels) between where T (camera a -> b) moves the pixel's point and where the
+    measured flow moves it; 1 when nothing compares. Candidates within a pixel of the flow score alike;
+    one that slid along a plain wall, which depth and colour residuals cannot see, disagrees by many pixels."""
     if not np.all(np.isfinite(T)):
         return 1.0
-    rigid = rigid_flow(depth, K, T)
-    valid = check.trusted & np.all(np.isfinite(rigid), axis=-1) & np.all(np.isfinite(check.flow), axis=-1)
+    v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
+    z = depth[v, u]
+    valid = check.trusted[v, u] & (z > 0)
     if not valid.any():
         return 1.0
-    r = np.linalg.norm(rigid[valid] - check.flow[valid], axis=-1)
+    u, v, z = u[valid].astype(np.float64), v[valid].astype(np.float64), z[valid]
+    points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1) @ T[:3, :3].T + T[:3, 3]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        moved = np.stack([K[0, 0] * points[:, 0] / points[:, 2] + K[0, 2], K[1, 1] * points[:, 1] / points[:, 2] + K[1, 2]], axis=1)
+    measured = np.stack([u, v], axis=1) + check.flow[v.astype(int), u.astype(int)]
+    r = np.linalg.norm(moved - measured, axis=1)
+    r = np.where(np.isfinite(r), r, scale_px)
     return float(np.mean(np.minimum(r / scale_px, 1.0) ** 2))
 
 

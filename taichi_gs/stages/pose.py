@@ -403,9 +403,10 @@ def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView]
     settings = config.verify_settings()
     scores: dict[str, Verification] = {name: verify(c.transform, *views, K, settings) for name, c in candidates.items()}
     if flow_check is not None:
-        scale = config.verify_flow_scale_px * views[0].depth.shape[1] / 320.0
+        width = views[0].depth.shape[1]
+        scale, stride = config.verify_flow_scale_px * width / 320.0, max(1, width // 160)
         for name, v in scores.items():
-            cost = flow_disagreement(candidates[name].transform, views[0].depth, K, flow_check, scale)
+            cost = flow_disagreement(candidates[name].transform, views[0].depth, K, flow_check, scale, stride)
             scores[name] = dataclasses.replace(v, score=v.score + config.verify_flow_weight * cost, flow=cost)
     name = min(scores, key=lambda n: scores[n].score)
     if np.isfinite(scores[name].score):
