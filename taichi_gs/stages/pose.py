@@ -103,8 +103,8 @@ class PoseConfig:
     verify_preference: tuple = ("rgbd-icp", "rgbd-icp-prior", "icp", "icp-prior", "flow", "constant-velocity")
     verify_min_overlap: float = 0.2  # winner's overlap below it flags the pair weak
     # [ours] add this x the candidate's disagreement with the pair's measured optical flow (0..1, capped at
-    # verify_flow_scale_px per pixel, at 320 px width) to its score: on plain walls depth and colour residuals
-    # cannot see a candidate slide along the wall, the flow can. 0: off
+    # verify_flow_scale_px per pixel, at 320 px width) to its score, for pairs and graph edges alike: on plain
+    # walls depth and colour residuals cannot see a candidate slide along the wall, the flow can. 0: off
     verify_flow_weight: float = 0.05
     verify_flow_scale_px: float = 4.0
     verify_grid_points: int = 3000
@@ -616,7 +616,13 @@ def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, conf
             candidates[f"rgbd-{name}"] = Candidate(refined)
     settings = config.verify_settings()
     views = (frame_view(color_i, depth_i, K, settings), frame_view(color_j, depth_j, K, settings))
-    chosen = _choose(candidates, views, K, config, ("rgbd-icp-chain", "rgbd-chain", "icp-chain", "chain"))
+    check = None
+    if config.verify_flow_weight > 0:
+        forward, backward = seeded_flows(to_gray_u8(color_i), to_gray_u8(color_j), depth_i, depth_j, K, init,
+                                         config.flow_preset)
+        check = FlowCheck(forward, forward_backward_mask(forward, backward))
+    chosen = _choose(candidates, views, K, config, ("rgbd-icp-chain", "rgbd-chain", "icp-chain", "chain"),
+                     flow_check=check)
     if chosen.weak or chosen.estimate == "chain" or not chosen.score <= max_score:
         return None
     return Edge(i, j, chosen.transform, _information(sequence, i, j, chosen.transform, K, config), kind,
