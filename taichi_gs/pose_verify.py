@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .geometry import backproject
+from .geometry import backproject, project, transform
 from .icp import reliable_depth_mask
 from .stages.pose_losses import bilinear, bilinear_depth
 
@@ -88,16 +88,17 @@ def flow_disagreement(T: np.ndarray, depth: np.ndarray, K: np.ndarray, check: Fl
     one that slid along a plain wall, which depth and colour residuals cannot see, disagrees by many pixels."""
     if not np.all(np.isfinite(T)):
         return 1.0
-    v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
-    z = depth[v, u]
-    valid = check.trusted[v, u] & (z > 0)
+    depth_s, trusted_s = depth[::stride, ::stride], check.trusted[::stride, ::stride]
+    valid = trusted_s & (depth_s > 0)
     if not valid.any():
         return 1.0
-    u, v, z = u[valid].astype(np.float64), v[valid].astype(np.float64), z[valid]
-    points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1) @ T[:3, :3].T + T[:3, 3]
+    # pixel (u', v') of the strided grid is pixel (stride u', stride v') of the image: K scaled by 1/stride
+    K_s = K.copy()
+    K_s[:2] /= stride
+    v, u = np.nonzero(valid)
     with np.errstate(invalid="ignore", divide="ignore"):
-        moved = np.stack([K[0, 0] * points[:, 0] / points[:, 2] + K[0, 2], K[1, 1] * points[:, 1] / points[:, 2] + K[1, 2]], axis=1)
-    measured = np.stack([u, v], axis=1) + check.flow[v.astype(int), u.astype(int)]
+        moved = project(transform(T, backproject(depth_s, K_s)[valid]), K)
+    measured = stride * np.stack([u, v], axis=1) + check.flow[::stride, ::stride][valid]
     r = np.linalg.norm(moved - measured, axis=1)
     r = np.where(np.isfinite(r), r, scale_px)
     return float(np.mean(np.minimum(r / scale_px, 1.0) ** 2))

@@ -323,12 +323,7 @@ def _align(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth
         if config.rgbd_refine and result.estimate == FROM_ICP:
             _refine_with_rgbd(result, color_t, depth_t, color_t1, depth_t1, K, config)
     else:
-        check = None
-        if config.verify_flow_weight > 0:
-            trusted = np.all(np.isfinite(flow), axis=-1)
-            if backward_flow is not None:
-                trusted &= forward_backward_mask(flow, backward_flow)
-            check = FlowCheck(flow, trusted)
+        check = _flow_check(flow, backward_flow) if config.verify_flow_weight > 0 else None
         result = _choose(_candidates(color_t, depth_t, color_t1, depth_t1, K, source_mask, flow_T, prior, config),
                          views, K, config, flow_check=check)
         result.flow_transform, result.points, result.iterations = flow_T, len(samples.points), iterations
@@ -392,6 +387,14 @@ def _candidates(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, 
             if refined is not None and np.all(np.isfinite(refined)):
                 candidates[f"{FROM_RGBD}-{name}"] = Candidate(refined)
     return candidates
+
+
+def _flow_check(forward: np.ndarray, backward: np.ndarray | None) -> FlowCheck:
+    """The measured flow, trusted where finite and (given the backward flow) forward-backward consistent."""
+    trusted = np.all(np.isfinite(forward), axis=-1)
+    if backward is not None:
+        trusted &= forward_backward_mask(forward, backward)
+    return FlowCheck(forward, trusted)
 
 
 def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView], K: np.ndarray,
@@ -618,9 +621,8 @@ def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, conf
     views = (frame_view(color_i, depth_i, K, settings), frame_view(color_j, depth_j, K, settings))
     check = None
     if config.verify_flow_weight > 0:
-        forward, backward = seeded_flows(to_gray_u8(color_i), to_gray_u8(color_j), depth_i, depth_j, K, init,
-                                         config.flow_preset)
-        check = FlowCheck(forward, forward_backward_mask(forward, backward))
+        check = _flow_check(*seeded_flows(to_gray_u8(color_i), to_gray_u8(color_j), depth_i, depth_j, K, init,
+                                          config.flow_preset))
     chosen = _choose(candidates, views, K, config, ("rgbd-icp-chain", "rgbd-chain", "icp-chain", "chain"),
                      flow_check=check)
     if chosen.weak or chosen.estimate == "chain" or not chosen.score <= max_score:
