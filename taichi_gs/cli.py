@@ -272,15 +272,17 @@ TimeToleranceOption = Annotated[Optional[float], typer.Option(
 FormatOption = Annotated[Optional[str], typer.Option("--format", help="Input layout (default: detected): taichi-gs | tum | 7scenes | scannet | replica | stray.")]
 CameraOption = Annotated[Optional[str], typer.Option("--camera", help="TUM camera fr1 | fr2 | fr3 (intrinsics and distortion; default from the folder name).")]
 EveryOption = Annotated[int, typer.Option("--every", min=1, help="Keep every N-th frame.")]
+FirstOption = Annotated[int, typer.Option("--first", min=0, help="Start at this frame of the listing (counted from 0).")]
+CountOption = Annotated[int, typer.Option("--count", min=0, help="Keep this many frames (after --every; 0: to the end).")]
 ScaleOption = Annotated[float, typer.Option("--scale", help="Read frames at S times their width and height (0.5: half).")]
 
 
 def _open_input(folder: Path, fx, fy, cx, cy, depth_scale, format: str | None, camera: str | None, every: int,
-                scale: float, time_tolerance: float | None, trust_depth_scale: bool):
+                scale: float, time_tolerance: float | None, trust_depth_scale: bool, first: int, count: int):
     from .io.sequence import load_sequence
 
     return load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale,
-                         format=format, camera=camera, every=every, scale=scale)
+                         format=format, camera=camera, every=every, scale=scale, first=first, count=count)
 
 
 @app.command()
@@ -296,6 +298,7 @@ def pose(
     trust_depth_scale: TrustDepthOption = False,
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
+    first: FirstOption = 0, count: CountOption = 0,
 ) -> None:
     """Stage 1: relative poses from optical flow and depth, refined by ICP, chained; fused point cloud."""
     from .io.lock import output_lock
@@ -306,7 +309,7 @@ def pose(
     if flow_dir is not None:
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
     sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
-                           trust_depth_scale)
+                           trust_depth_scale, first, count)
     _init_backend()
     with output_lock(out):
         check_run_input(out, sequence)
@@ -325,13 +328,14 @@ def import_(
     trust_depth_scale: TrustDepthOption = False,
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
+    first: FirstOption = 0, count: CountOption = 0,
 ) -> None:
     """Convert a sequence to taichi-gs's own layout (frames.txt, rgb/, depth/, intrinsics.json, groundtruth.txt)."""
     from .io.convert import import_sequence
 
     _check_output_folder(folder, out)
     sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
-                           trust_depth_scale)
+                           trust_depth_scale, first, count)
     with progress_bar("import", len(sequence)) as update:
         import_sequence(sequence, out, progress=lambda done, total: update(done, total))
     console.print(f"wrote {len(sequence)} frames ({sequence.source['format']}) to {out}", highlight=False)
@@ -375,6 +379,7 @@ def reconstruct(
     trust_depth_scale: TrustDepthOption = False,
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
+    first: FirstOption = 0, count: CountOption = 0,
     profile: Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md: wall and "
                                           "CPU seconds per stage and per kind of work (renders, losses, ...).")] = False,
 ) -> None:
@@ -387,7 +392,7 @@ def reconstruct(
     _check_output_folder(folder, out)
     sections = resolve_sections(preset.value, config_file)
     sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
-                           trust_depth_scale)
+                           trust_depth_scale, first, count)
     sequence.check_all()
     _init_backend()
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from format_fixtures import (PLANE_Z, SCANNET_COLOR_K, SCANNET_DEPTH_K, SMALL_K, TUM_FR1, WRITERS, backproject, render,
+from format_fixtures import (FRAMES, PLANE_Z, SCANNET_COLOR_K, SCANNET_DEPTH_K, SMALL_K, TUM_FR1, WRITERS, backproject, render,
                              truth_poses, write_7scenes, write_own, write_replica, write_scannet, write_stray,
                              write_tum)
 from taichi_gs.cli import app
@@ -170,6 +170,26 @@ def test_every_keeps_timestamps_and_ground_truth(tmp_path):
     seq = load_sequence(folder, every=2)
     assert seq.names == ["frame-000000", "frame-000002"]
     assert np.allclose(seq.timestamps, [0, 2 / 30]) and np.allclose(seq.gt_poses, truth_poses()[::2])
+
+
+def test_first_and_count_pick_a_stretch_and_the_run_reopens_it(tmp_path):
+    folder = tmp_path / "s"
+    write_7scenes(folder)
+    seq = load_sequence(folder, first=1, count=2)
+    assert seq.names == ["frame-000001", "frame-000002"]
+    assert np.allclose(seq.timestamps, [1 / 30, 2 / 30]) and np.allclose(seq.gt_poses, truth_poses()[1:3])
+    assert load_sequence(folder, count=3, every=2).names == ["frame-000000", "frame-000002"]  # as many as there are
+    write_run_info(tmp_path / "run", seq)
+    assert open_run_sequence(tmp_path / "run").names == seq.names
+
+
+def test_a_first_frame_past_the_end_or_a_one_frame_stretch_is_refused(tmp_path):
+    folder = tmp_path / "s"
+    write_7scenes(folder)
+    line = _cli_error(["pose", str(folder), "--out", str(tmp_path / "o"), "--first", "9"])
+    assert "--first 9" in line and f"{FRAMES} frames" in line
+    line = _cli_error(["import", str(folder), "--out", str(tmp_path / "i"), "--first", "1", "--count", "1"])
+    assert "1 frame(s)" in line and not (tmp_path / "i").exists()
 
 
 def test_import_round_trips_and_leaves_the_input_alone(tmp_path):

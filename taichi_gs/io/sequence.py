@@ -224,10 +224,12 @@ def load_sequence(
     camera: str | None = None,
     every: int = 1,
     scale: float = 1.0,
+    first: int = 0,
+    count: int = 0,
 ) -> Sequence:
     """Open a sequence folder in any known layout (detected, or ``format``; see ``io.formats``),
-    keep every ``every``-th frame, read at ``scale`` times the size; checks lists, files,
-    intrinsics and depth scale.
+    keep every ``every``-th frame from frame ``first`` on (``count`` of them; 0: all), read at
+    ``scale`` times the size; checks lists, files, intrinsics and depth scale.
 
     The median valid depth must look like an indoor RGB-D capture (0.25-6 m), which catches the usual
     depth-scale mix-ups (1000 for 5000); ``trust_depth_scale`` relaxes that to 0.1-100 m for scenes
@@ -244,8 +246,14 @@ def load_sequence(
         raise InputError(None, f"--every {every} is not a positive integer", "e.g. --every 2 keeps every second frame")
     if not (math.isfinite(scale) and 0.0 < scale <= 4.0):
         raise InputError(None, f"--scale {scale} is not in (0, 4]", "e.g. --scale 0.5 for half width and height")
+    if first < 0 or count < 0:
+        raise InputError(None, f"--first {first} / --count {count} is negative", "e.g. --first 100 --count 40")
     options = ReadOptions(override or IntrinsicsOverride(), camera, max_time_difference)
-    sequence = rescale(subsample(open_format(root, options, format), every), scale)
+    listed = open_format(root, options, format)
+    if first >= len(listed):
+        raise InputError(listed.root, f"--first {first} is past the last of the sequence's {len(listed)} frames",
+                         f"give --first below {len(listed)} (frames count from 0)")
+    sequence = rescale(subsample(listed, every, first, count), scale)
     if options.override.values():
         sequence.source = {**sequence.source, "intrinsics": options.override.values()}
     if len(sequence) < 2:
@@ -253,7 +261,8 @@ def load_sequence(
     _check_depth_scale(sequence, trust_depth_scale)
     sequence.load_options = {"override": options.override.values(), "max_time_difference": max_time_difference,
                              "trust_depth_scale": trust_depth_scale, "format": sequence.source["format"],
-                             "camera": sequence.source.get("camera"), "every": every, "scale": scale}
+                             "camera": sequence.source.get("camera"), "every": every, "scale": scale,
+                             "first": first, "count": count}
     return sequence
 
 

@@ -193,15 +193,17 @@ class DropDepthAbove(FrameTransform):
         return np.where(depth >= self.limit, 0.0, depth).astype(np.float32)
 
 
-def subsample(sequence: Sequence, every: int) -> Sequence:
-    """Every ``every``-th frame of a sequence, starting with the first (timestamps kept)."""
-    if every == 1:
+def subsample(sequence: Sequence, every: int, first: int = 0, count: int = 0) -> Sequence:
+    """Frames ``first``, ``first + every``, ... of a sequence, at most ``count`` of them (0: to the end);
+    timestamps and ground truth kept."""
+    if every == 1 and first == 0 and count == 0:
         return sequence
+    picked = slice(first, None if count == 0 else first + count * every, every)
     cut = copy.copy(sequence)
     for attr in ("timestamps", "rgb_paths", "depth_paths", "names", "gt_poses", "exposure_poses", "sharp_paths"):
         value = getattr(sequence, attr)
-        setattr(cut, attr, None if value is None else value[::every])
-    cut.source = {**sequence.source, "every": every}
+        setattr(cut, attr, None if value is None else value[picked])
+    cut.source = {**sequence.source, "every": every, "first": first, "count": count}
     return cut
 
 
