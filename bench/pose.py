@@ -50,6 +50,7 @@ METHOD_ONLY = {"verify": False, "rgbd_refine": False, "icp_from_prior": False, "
 OURS = {
     "ours": {},
     "ours no flow check": {"verify_flow_weight": 0.0},
+    "ours flow weight 0.2": {"verify_flow_weight": 0.2},
     "ours no verify": {"verify": False, "pose_graph": False},
     "method": METHOD_ONLY,
 }
@@ -140,7 +141,8 @@ def kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def run_dense_slam(sequence, voxel: float = 0.01, depth_max: float = 5.0):
-    """Open3D's dense RGB-D SLAM (frame-to-model tracking on a TSDF voxel-hash map) on the CPU."""
+    """Open3D's dense RGB-D SLAM (frame-to-model tracking on a TSDF voxel-hash map) on the CPU; a frame
+    whose tracking fails (Open3D raises on a singular system) keeps the last pose and is counted."""
     import open3d as o3d
     import open3d.core as o3c
 
@@ -150,20 +152,22 @@ def run_dense_slam(sequence, voxel: float = 0.01, depth_max: float = 5.0):
     model = o3d.t.pipelines.slam.Model(voxel, 16, 40000, T, device)
     h, w = sequence.depth(0).shape
     frame, raycast = o3d.t.pipelines.slam.Frame(h, w, K, device), o3d.t.pipelines.slam.Frame(h, w, K, device)
-    poses, start = [], time.perf_counter()
+    poses, failed, start = [], 0, time.perf_counter()
     for i in range(len(sequence)):
         depth = np.round(sequence.depth(i) * 1000.0).astype(np.uint16)
         color = np.ascontiguousarray(np.clip(sequence.color(i) * 255, 0, 255).astype(np.uint8))
         frame.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(depth)))
         frame.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(color)))
         if i > 0:
-            result = model.track_frame_to_model(frame, raycast, 1000.0, depth_max, 0.07)
-            T = T @ result.transformation
+            try:
+                T = T @ model.track_frame_to_model(frame, raycast, 1000.0, depth_max, 0.07).transformation
+            except RuntimeError:
+                failed += 1
         poses.append(T.cpu().numpy())
         model.update_frame_pose(i, T)
         model.integrate(frame, 1000.0, depth_max, 8.0)
         model.synthesize_model_frame(raycast, 1000.0, 0.1, depth_max, 8.0, False)
-    return np.stack(poses), (time.perf_counter() - start) / (len(sequence) - 1), "-"
+    return np.stack(poses), (time.perf_counter() - start) / (len(sequence) - 1), f"{failed} failed"
 
 
 def pair_errors_mm(poses: np.ndarray, gt: np.ndarray) -> np.ndarray:
