@@ -26,7 +26,6 @@ translation error p50 / p90 / max (mm), weak pairs, pruned graph edges, seconds 
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import sys
 import tempfile
@@ -235,7 +234,7 @@ def sequences(args, root: Path):
     """(name, sequence) of the given folders, or of the synthetic and 7-Scenes grid."""
     if args.sequence:
         for folder in args.sequence:
-            yield folder.name, first_frames(load_sequence(folder), args.frames)
+            yield folder.name, load_sequence(folder, count=args.frames)
         return
     from taichi_gs.synth import SynthConfig, generate
 
@@ -253,16 +252,6 @@ def sequences(args, root: Path):
         if not (folder / "frames.txt").is_file():
             convert_7scenes(folder, SEVEN_SCENES, first=0, count=args.frames, every=every, scale=args.real_scale)
         yield f"7-Scenes every {every} x{args.real_scale:g}", load_sequence(folder)
-
-
-def first_frames(sequence, n: int):
-    """A copy of a loaded sequence cut to its first n frames."""
-    cut = copy.copy(sequence)
-    for attr in ("timestamps", "rgb_paths", "depth_paths", "names", "gt_poses", "exposure_poses", "sharp_paths"):
-        value = getattr(sequence, attr, None)
-        if value is not None:
-            setattr(cut, attr, value[:n])
-    return cut
 
 
 if __name__ == "__main__":

@@ -272,7 +272,7 @@ TimeToleranceOption = Annotated[Optional[float], typer.Option(
 FormatOption = Annotated[Optional[str], typer.Option("--format", help="Input layout (default: detected): taichi-gs | tum | 7scenes | scannet | replica | stray.")]
 CameraOption = Annotated[Optional[str], typer.Option("--camera", help="TUM camera fr1 | fr2 | fr3 (intrinsics and distortion; default from the folder name).")]
 EveryOption = Annotated[int, typer.Option("--every", min=1, help="Keep every N-th frame.")]
-FirstOption = Annotated[int, typer.Option("--first", min=0, help="Start at this frame of the listing (counted from 0).")]
+FirstOption = Annotated[int, typer.Option("--first", min=0, help="Start at this frame of the sequence as read (counted from 0; TUM: after colour-depth association).")]
 CountOption = Annotated[int, typer.Option("--count", min=0, help="Keep this many frames (after --every; 0: to the end).")]
 ScaleOption = Annotated[float, typer.Option("--scale", help="Read frames at S times their width and height (0.5: half).")]
 
