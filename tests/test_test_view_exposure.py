@@ -39,16 +39,20 @@ def _error(d: np.ndarray) -> float:
     return min(np.linalg.norm(d - TRUE), np.linalg.norm(d[::-1] - TRUE))
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_refinement_recovers_the_exposure_with_the_scene_frozen(seed):
+def _held_out_frame(seed: int) -> tuple[BlurScene, np.ndarray, _Frames, np.ndarray]:
+    """(scene, its blur over the true exposure, that blur as the held-out frame, a wrong start: a third
+    of the true motion with its middle off by a few pixels)."""
     model = BlurScene(_textured_scene(seed), K, WIDTH, HEIGHT)
     blurred = model.render_blurred(BASE, TRUE[0], TRUE[1], K_VIEWS)
     _, depth = model.render(BASE)
     frames = _Frames([blurred], [depth], np.array([float(np.median(depth[depth > 0]))]), K)
-
-    # wrong: a third of the true motion, and its middle off by a few pixels
     shift = np.array([0.02, -0.015, 0.0, 0.0, 0.01, 0.0])
-    start = np.stack([0.33 * TRUE[0] + shift, 0.33 * TRUE[1] + shift])
+    return model, blurred, frames, np.stack([0.33 * TRUE[0] + shift, 0.33 * TRUE[1] + shift])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_refinement_recovers_the_exposure_with_the_scene_frozen(seed):
+    model, blurred, frames, start = _held_out_frame(seed)
     config = DeblurConfig(k=K_VIEWS, test_pose_iterations=120, lr_test_pose=2e-3, lambda_dssim=0.2)
 
     params, t = model.arrays(), model.store.adam.t
@@ -76,12 +80,7 @@ def test_refinement_recovers_the_exposure_with_the_scene_frozen(seed):
 def test_rprop_fits_the_blur_in_fewer_steps_than_adam(seed):
     """[ours] test_fit = "rprop": with the same 20 steps its re-blurred render matches the blurred
     input at least twice as closely as Adam's, and the mid-exposure pose improves as much."""
-    model = BlurScene(_textured_scene(seed), K, WIDTH, HEIGHT)
-    blurred = model.render_blurred(BASE, TRUE[0], TRUE[1], K_VIEWS)
-    _, depth = model.render(BASE)
-    frames = _Frames([blurred], [depth], np.array([float(np.median(depth[depth > 0]))]), K)
-    shift = np.array([0.02, -0.015, 0.0, 0.0, 0.01, 0.0])
-    start = np.stack([0.33 * TRUE[0] + shift, 0.33 * TRUE[1] + shift])
+    model, blurred, frames, start = _held_out_frame(seed)
     true_mid, start_mid = virtual_pose(BASE, *TRUE, 0.5), virtual_pose(BASE, *start, 0.5)
     residual, mid_error = {}, {}
     for fit in ("adam", "rprop"):
