@@ -492,12 +492,23 @@ def _colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, con
     return adam.step(frame, M, grad + pull, config.lr_colour_affine)
 
 
+def _test_fit_steps(config: DeblurConfig) -> tuple[Callable[[np.ndarray, np.ndarray], np.ndarray],
+                                                    Callable[[np.ndarray, np.ndarray], np.ndarray]]:
+    """The held-out fit's (exposure step, colour step), each ``(value, loss gradient) -> value``, by
+    ``config.test_fit``; the colour step adds the identity pull."""
+    if config.test_fit == "rprop":
+        exposure, colour = Rprop((2, 6), config.lr_test_pose), Rprop((3, 4), config.lr_colour_affine)
+        return exposure.step, lambda M, grad: colour.step(M, grad + identity_penalty(M, config.lambda_colour_affine)[1])
+    exposure_adam, colour_adam = RowAdam(1, (2, 6)), RowAdam(1, (3, 4))
+    return (lambda d, grad: exposure_adam.step(0, d, grad, config.lr_test_pose),
+            lambda M, grad: _colour_step(colour_adam, M, grad, 0, config))
+
+
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
                           frame: int, config: DeblurConfig) -> tuple[np.ndarray, np.ndarray]:
     """Fit a held-out frame's exposure offsets (and, with ``colour_affine``, its colour transform),
     scene frozen, by re-blurring against its blurred input (``config.test_fit``: Adam or Rprop)."""
-    adam, colour_adam = RowAdam(1, (2, 6)), RowAdam(1, (3, 4))
-    rprop, colour_rprop = Rprop((2, 6), config.lr_test_pose), Rprop((3, 4), config.lr_colour_affine)
+    exposure_step, colour_step = _test_fit_steps(config)
     colour = IDENTITY.copy()
     guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
     for it in range(config.test_pose_iterations):
@@ -505,15 +516,10 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
                           _views(d, frames.K[0, 0], frames.median_depth[frame], config),
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
-        grad = np.stack([step.grad_start, step.grad_end])
-        d = rprop.step(d, grad) if config.test_fit == "rprop" else adam.step(0, d, grad, config.lr_test_pose)
+        d = exposure_step(d, np.stack([step.grad_start, step.grad_end]))
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
         if config.colour_affine:
-            if config.test_fit == "rprop":
-                colour = colour_rprop.step(colour, step.grad_colour
-                                           + identity_penalty(colour, config.lambda_colour_affine)[1])
-            else:
-                colour = _colour_step(colour_adam, colour, step.grad_colour, 0, config)
+            colour = colour_step(colour, step.grad_colour)
     return d, colour
 
 
