@@ -90,3 +90,14 @@ def test_rprop_fits_the_blur_in_fewer_steps_than_adam(seed):
         mid_error[fit] = np.linalg.norm(virtual_pose(BASE, *refined, 0.5)[:3, 3] - true_mid[:3, 3])
     assert residual["rprop"] < 0.5 * residual["adam"], residual
     assert mid_error["rprop"] < 0.6 * np.linalg.norm(start_mid[:3, 3] - true_mid[:3, 3]), mid_error
+
+
+def test_rprop_fit_with_a_zero_colour_rate_keeps_the_colour():
+    """A zero ``lr_colour_affine`` (a valid rate: frozen) leaves the colour transform at identity under
+    Rprop, as under Adam, instead of failing after training."""
+    model, _, frames, start = _held_out_frame(0)
+    config = DeblurConfig(k=K_VIEWS, test_pose_iterations=3, lr_test_pose=2e-3, test_fit="rprop",
+                          colour_affine=True, lr_colour_affine=0.0)
+    refined, colour = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
+    np.testing.assert_array_equal(colour, np.eye(3, 4))
+    assert not np.array_equal(refined, start)

@@ -492,13 +492,18 @@ def _colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, con
     return adam.step(frame, M, grad + pull, config.lr_colour_affine)
 
 
+def _rprop_step(shape: tuple[int, ...], rate: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """Rprop's step starting at ``rate``; a zero rate (allowed for every ``lr_``) keeps the value, as Adam's does."""
+    return Rprop(shape, rate).step if rate > 0 else (lambda value, grad: value)
+
+
 def _test_fit_steps(config: DeblurConfig) -> tuple[Callable[[np.ndarray, np.ndarray], np.ndarray],
                                                     Callable[[np.ndarray, np.ndarray], np.ndarray]]:
     """The held-out fit's (exposure step, colour step), each ``(value, loss gradient) -> value``, by
     ``config.test_fit``; the colour step adds the identity pull."""
     if config.test_fit == "rprop":
-        exposure, colour = Rprop((2, 6), config.lr_test_pose), Rprop((3, 4), config.lr_colour_affine)
-        return exposure.step, lambda M, grad: colour.step(M, grad + identity_penalty(M, config.lambda_colour_affine)[1])
+        exposure, colour = _rprop_step((2, 6), config.lr_test_pose), _rprop_step((3, 4), config.lr_colour_affine)
+        return exposure, lambda M, grad: colour(M, grad + identity_penalty(M, config.lambda_colour_affine)[1])
     exposure_adam, colour_adam = RowAdam(1, (2, 6)), RowAdam(1, (3, 4))
     return (lambda d, grad: exposure_adam.step(0, d, grad, config.lr_test_pose),
             lambda M, grad: _colour_step(colour_adam, M, grad, 0, config))
