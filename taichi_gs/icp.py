@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -62,7 +63,7 @@ def multiscale_point_to_plane(
 
     At voxel size v the clouds are downsampled to v, target normals use radius normal_radius_factor v,
     and correspondences farther than distance_factor v are ignored. With ``max_points`` > 0 every voxel
-    size grows by steps of 25% until the finest level leaves at most that many source points (ICP
+    size grows by steps of 25% (``VOXEL_GROWTH``) until the finest level leaves at most that many source points (ICP
     time grows faster than linearly with density). Fitness and RMSE are the finest level's.
     """
     if len(voxel_sizes) != len(iterations):
@@ -90,12 +91,41 @@ def multiscale_point_to_plane(
     return ICPResult(transform, fitness, rmse)
 
 
+VOXEL_GROWTH = 1.25  # the ICP point cap grows voxels by this factor per step
+_PROBE_STEP = 12  # the voxel search's first count, 1.25^12 ~ 15x coarser than the finest voxel (cheap)
+
+
 def _voxel_scale(cloud: o3d.geometry.PointCloud, voxel: float, max_points: int) -> float:
-    """Smallest factor 1.25^k by which ``voxel`` must grow to leave at most ``max_points`` points (1 if no cap)."""
-    scale = 1.0
-    while max_points > 0 and len(cloud.voxel_down_sample(scale * voxel).points) > max_points:
-        scale *= 1.25
-    return scale
+    """Smallest factor 1.25^k by which ``voxel`` must grow to leave at most ``max_points`` points (1 if no cap).
+
+    Voxel counts fall as voxels grow, and a fine voxel costs far more to count than a coarse one (173 ms
+    at 1 cm for a 640x480 depth cloud, 8 ms at 15 cm). So the search counts a coarse voxel first,
+    extrapolates by the surface law (count ~ voxel^-2) to a guess of k, and steps from the guess to the
+    smallest k that fits: two or three counts instead of one per step from k = 0, with the same answer.
+    """
+    if max_points <= 0:
+        return 1.0
+
+    counts: dict[int, int] = {}
+
+    def fits(k: int) -> bool:
+        if k not in counts:
+            counts[k] = len(cloud.voxel_down_sample(voxel * VOXEL_GROWTH**k).points)
+        return counts[k] <= max_points
+
+    probe = _PROBE_STEP
+    while not fits(probe):
+        probe *= 2
+    growth_steps = math.log(max_points / max(counts[probe], 1)) / (2 * math.log(VOXEL_GROWTH))
+    k = min(probe, max(0, math.ceil(probe - growth_steps)))
+    if fits(k):
+        while k > 0 and fits(k - 1):
+            k -= 1
+    else:
+        while not fits(k + 1):  # stops at probe at the latest
+            k += 1
+        k += 1
+    return VOXEL_GROWTH**k
 
 
 def rgbd_odometry(

@@ -118,6 +118,51 @@ def test_icp_point_cap_coarsens_the_voxels_and_stays_accurate():
     assert rotation_error_deg(result.transform, MOTION) < 0.1
 
 
+def _linear_voxel_scale(cloud, voxel: float, max_points: int) -> float:
+    """The reference search: grow the voxel by 25% until the cloud has at most ``max_points`` points."""
+    scale = 1.0
+    while len(cloud.voxel_down_sample(scale * voxel).points) > max_points:
+        scale *= 1.25
+    return scale
+
+
+@pytest.mark.parametrize("max_points", [1, 40, 900, 20000, 60000, 10**7])
+def test_voxel_search_finds_the_same_voxel_as_growing_it_step_by_step(max_points):
+    from taichi_gs.icp import _voxel_scale, depth_cloud
+
+    _, depth_t, _, depth_t1, K = pair(MOTION, 320, 240)
+    rng = np.random.default_rng(0)
+    noisy = depth_t1 * (1 + 0.01 * rng.standard_normal(depth_t1.shape))  # a volumetric, non-planar cloud
+    for depth in (depth_t, noisy):
+        cloud = depth_cloud(depth, K, depth > 0)
+        for voxel in (0.002, 0.01, 0.03):
+            assert _voxel_scale(cloud, voxel, max_points) == pytest.approx(_linear_voxel_scale(cloud, voxel, max_points))
+
+
+def test_icp_results_that_coincide_share_one_rgbd_odometry_run(monkeypatch):
+    color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
+    starts = []
+    original = pose_stage.rgbd_odometry
+    monkeypatch.setattr(pose_stage, "rgbd_odometry",
+                        lambda *args, **kwargs: starts.append(args[5].copy()) or original(*args, **kwargs))
+    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig())
+    icp, icp_prior = (np.array(result.candidates[n]["transform"]) for n in ("icp", "icp-prior"))
+    assert np.abs(icp - icp_prior).max() <= pose_stage.SAME_START_ATOL  # both ICP runs converge here
+    assert len(starts) == 1  # one odometry run serves both
+    np.testing.assert_array_equal(result.candidates["rgbd-icp"]["transform"], result.candidates["rgbd-icp-prior"]["transform"])
+
+
+def test_distinct_starts_each_get_their_own_run():
+    runs, calls = [], []
+    run = lambda start: calls.append(1) or start[0, 3]  # noqa: E731
+    first, second = np.eye(4), np.eye(4)
+    second[0, 3] = 1e-6
+    assert pose_stage._run_once(runs, first, run) == 0.0
+    assert pose_stage._run_once(runs, first + 1e-12, run) == 0.0  # within SAME_START_ATOL: reused
+    assert pose_stage._run_once(runs, second, run) == 1e-6
+    assert len(calls) == 2
+
+
 @pytest.fixture(scope="module")
 def walk_sequence() -> SceneSequence:
     return SceneSequence(walk(5))
@@ -157,6 +202,16 @@ def test_rerun_reads_cached_pairs_and_recomputes_after_a_config_change(tmp_path,
     np.testing.assert_allclose(second.poses, first.poses, atol=1e-9)
     run_pose(walk_sequence, tmp_path, PoseConfig(max_points=3000))
     assert len(calls) == 5
+
+
+def test_each_frame_view_is_computed_once_for_pairs_and_graph(tmp_path, walk_sequence, monkeypatch):
+    computed, edges = [], []
+    original_view, original_edge = pose_stage.frame_view, pose_stage._graph_edge
+    monkeypatch.setattr(pose_stage, "frame_view", lambda color, *a, **k: computed.append(id(color)) or original_view(color, *a, **k))
+    monkeypatch.setattr(pose_stage, "_graph_edge", lambda *a, **k: edges.append(1) or original_edge(*a, **k))
+    run_pose(walk_sequence, tmp_path, PoseConfig())
+    assert len(edges) == 5  # skip edges (i, i + 2) and (i, i + 3) verified on the pairs' views
+    assert sorted(computed) == sorted(id(walk_sequence.color(i)) for i in range(len(walk_sequence)))
 
 
 def test_frame_without_depth_becomes_weak_constant_velocity_pairs(tmp_path):

@@ -10,6 +10,7 @@ summary), and ``pairs/NNNNNN.json`` (per-pair cache, so a rerun skips finished p
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import time
@@ -40,6 +41,9 @@ NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError)
 
 # Estimate kinds recorded per pair.
 FROM_RGBD, FROM_ICP, FROM_FLOW, FROM_CONSTANT_VELOCITY = "rgbd", "icp", "flow", "constant-velocity"
+# ICP starts closer than this (every entry of the 4 x 4 transform) give one RGB-D odometry run: ICP from the
+# flow solve and ICP from the prior ended within 1e-9 of each other in 2862 of 3926 stored pairs
+SAME_START_ATOL = 1e-9
 # Names of a pair's candidates (see _candidates): what started what.
 CANDIDATE_NAMES = ("rgbd-icp", "rgbd-icp-prior", "rgbd-flow", "icp", "icp-prior", "flow", "constant-velocity")
 
@@ -247,6 +251,7 @@ def estimate_relative_pose(
     config: PoseConfig = PoseConfig(),
     backward_flow: np.ndarray | None = None,
     prior: np.ndarray | None = None,
+    views: tuple[FrameView, FrameView] | None = None,
 ) -> RelativePose:
     """Transform camera t -> t+1 minimising L_F, then L_F + l_I L_I + l_C L_C, then refined by ICP
     (and, with ``rgbd_refine``, by dense RGB-D odometry).
@@ -258,6 +263,7 @@ def estimate_relative_pose(
     (``prior``, the constant-velocity guess, if it moves; then a rejected but well-fitting ICP result,
     see :func:`_retry_seeds`); a retry replaces it if it is not weak (with ``verify``: if it scores
     lower). ``prior`` (default identity) itself is returned, flagged weak, when nothing aligns the pair.
+    ``views``: the two frames' :func:`taichi_gs.pose_verify.frame_view`, when already computed.
     """
     start = time.perf_counter()
     prior = np.eye(4) if prior is None else prior
@@ -265,8 +271,9 @@ def estimate_relative_pose(
     if flow is None:
         flow = dis_flow(gray_t, gray_t1, config.flow_preset)
         backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset)
-    views = None
-    if config.verify:
+    if not config.verify:
+        views = None
+    elif views is None:
         settings = config.verify_settings()
         views = (frame_view(color_t, depth_t, K, settings), frame_view(color_t1, depth_t1, K, settings))
     frames = (color_t, depth_t, color_t1, depth_t1, K)
@@ -380,13 +387,28 @@ def _candidates(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, 
         if np.all(np.isfinite(icp.transform)):
             candidates[name] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
     if config.rgbd_refine:
+        odometry = functools.partial(rgbd_odometry, color_t, depth_t, color_t1, depth_t1, K,
+                                     iterations=tuple(config.rgbd_iterations),
+                                     depth_diff_max=config.rgbd_depth_diff_max_m,
+                                     depth_range=(config.min_depth_m, config.max_depth_m))
+        runs: list[tuple[np.ndarray, np.ndarray | None]] = []
         for name in [n for n in candidates if n.startswith(FROM_ICP)] or [n for n in (FROM_FLOW,) if n in candidates]:
-            refined = rgbd_odometry(color_t, depth_t, color_t1, depth_t1, K, candidates[name].transform,
-                                    tuple(config.rgbd_iterations), config.rgbd_depth_diff_max_m,
-                                    (config.min_depth_m, config.max_depth_m))
+            refined = _run_once(runs, candidates[name].transform, odometry)
             if refined is not None and np.all(np.isfinite(refined)):
                 candidates[f"{FROM_RGBD}-{name}"] = Candidate(refined)
     return candidates
+
+
+def _run_once(runs: list[tuple[np.ndarray, np.ndarray | None]], start: np.ndarray,
+              run: Callable[[np.ndarray], np.ndarray | None]) -> np.ndarray | None:
+    """``run(start)``, or the result of an earlier run in ``runs`` from a start within ``SAME_START_ATOL``
+    of it (ICP from the flow solve and ICP from the prior converge to one transform in most pairs)."""
+    for earlier, result in runs:
+        if np.abs(earlier - start).max() <= SAME_START_ATOL:
+            return result
+    result = run(start)
+    runs.append((start, result))
+    return result
 
 
 def _flow_check(forward: np.ndarray, backward: np.ndarray | None) -> FlowCheck:
@@ -533,6 +555,24 @@ def flow_provider(sequence, config: PoseConfig) -> FlowProvider:
     return DISFlow(sequence, config.flow_preset)
 
 
+class FrameCache:
+    """A sequence's per-frame data for verification and the pose graph (views, information clouds), each
+    computed once while among the ``keep`` frames used last: pairs and graph edges visit frames in windows."""
+
+    def __init__(self, sequence, K: np.ndarray, config: PoseConfig, keep: int = 16):
+        settings = config.verify_settings()
+        self.view: Callable[[int], FrameView] = functools.lru_cache(maxsize=keep)(
+            lambda i: frame_view(sequence.color(i), sequence.depth(i), K, settings))
+        self.info_cloud: Callable[[int], o3d.geometry.PointCloud] = functools.lru_cache(maxsize=keep)(
+            lambda i: _information_cloud(sequence.depth(i), K, config))
+
+
+def _information_cloud(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> o3d.geometry.PointCloud:
+    """A frame's reliable depth as a cloud at the information matrices' voxel size."""
+    mask = reliable_depth_mask(depth, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+    return depth_cloud(depth, K, mask).voxel_down_sample(config.graph_info_voxel_m)
+
+
 def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
              progress: Callable[[int, int], None] | None = None) -> PoseResult:
     """Stage 1 over a whole sequence, resuming from cached pairs; writes OUT/pose/ (see module doc)."""
@@ -545,12 +585,13 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     provider = flow_provider(sequence, config)
     K = sequence.intrinsics.K()
     key = config.pair_key()
+    frames = FrameCache(sequence, K, config)
     relatives: list[RelativePose] = []
     for k in range(n - 1):
         relative = _load_pair(pair_dir / f"{k:06d}.json", key)
         if relative is None:
             prior = relatives[-1].transform if relatives else np.eye(4)
-            relative = _estimate_pair(sequence, provider, k, K, config, prior)
+            relative = _estimate_pair(sequence, provider, k, K, config, prior, frames)
             write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
         relatives.append(relative)
         if progress is not None:
@@ -561,7 +602,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     edges: list[Edge] = []
     graph_start = time.perf_counter()
     if config.pose_graph:
-        poses, edges = refine_with_graph(sequence, relatives, poses, config)
+        poses, edges = refine_with_graph(sequence, relatives, poses, config, frames)
     result = PoseResult(poses, pairs, edges=[_edge_record(e) for e in edges],
                         graph_seconds=time.perf_counter() - graph_start)
     paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
@@ -573,33 +614,35 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     return result
 
 
-def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray,
-                      config: PoseConfig) -> tuple[np.ndarray, list[Edge]]:
-    """[ours] Poses from a robust pose graph over the pairs, skip edges and loop closures (see PoseConfig)."""
+def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray, config: PoseConfig,
+                      frames: FrameCache | None = None) -> tuple[np.ndarray, list[Edge]]:
+    """[ours] Poses from a robust pose graph over the pairs, skip edges and loop closures (see PoseConfig);
+    ``frames``: the run's per-frame cache, if there is one."""
     K = sequence.intrinsics.K()
+    frames = frames or FrameCache(sequence, K, config)
     n = len(sequence)
     scores = [r.score for r in relatives if np.isfinite(r.score)]
     max_score = config.graph_max_score_ratio * float(np.median(scores)) if scores else config.verify_max_score
     edges = []
     for k, r in enumerate(relatives):
-        info = _information(sequence, k, k + 1, r.transform, K, config)
+        info = _information(frames, k, k + 1, r.transform, config)
         edges.append(Edge(k, k + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0), "odometry",
                           r.estimate, r.score, r.weak))
     for k in config.graph_skips:
         for i in range(n - int(k)):
-            edge = _graph_edge(sequence, i, i + int(k), chained, K, config, "skip", max_score)
+            edge = _graph_edge(sequence, frames, i, i + int(k), chained, K, config, "skip", max_score)
             if edge is not None:
                 edges.append(edge)
     if config.loop_closures:
         for i, j in _loop_candidates(chained, config):
-            edge = _graph_edge(sequence, i, j, chained, K, config, "loop", max_score)
+            edge = _graph_edge(sequence, frames, i, j, chained, K, config, "loop", max_score)
             if edge is not None:
                 edges.append(edge)
     return optimise(chained, edges), edges
 
 
-def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig, kind: str,
-                max_score: float) -> Edge | None:
+def _graph_edge(sequence, frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig,
+                kind: str, max_score: float) -> Edge | None:
     """A verified edge camera i -> camera j started from the current poses, or None when it is weak, scores
     above ``max_score`` or is no better than the poses it started from."""
     init = invert(poses[j]) @ poses[i]
@@ -617,8 +660,7 @@ def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, conf
                                 (config.min_depth_m, config.max_depth_m))
         if refined is not None and np.all(np.isfinite(refined)):
             candidates[f"rgbd-{name}"] = Candidate(refined)
-    settings = config.verify_settings()
-    views = (frame_view(color_i, depth_i, K, settings), frame_view(color_j, depth_j, K, settings))
+    views = (frames.view(i), frames.view(j))
     check = None
     if config.verify_flow_weight > 0:
         check = _flow_check(*seeded_flows(to_gray_u8(color_i), to_gray_u8(color_j), depth_i, depth_j, K, init,
@@ -627,7 +669,7 @@ def _graph_edge(sequence, i: int, j: int, poses: np.ndarray, K: np.ndarray, conf
                      flow_check=check)
     if chosen.weak or chosen.estimate == "chain" or not chosen.score <= max_score:
         return None
-    return Edge(i, j, chosen.transform, _information(sequence, i, j, chosen.transform, K, config), kind,
+    return Edge(i, j, chosen.transform, _information(frames, i, j, chosen.transform, config), kind,
                 chosen.estimate, chosen.score)
 
 
@@ -647,15 +689,10 @@ def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, i
     return pairs
 
 
-def _information(sequence, i: int, j: int, T: np.ndarray, K: np.ndarray, config: PoseConfig) -> np.ndarray:
+def _information(frames: FrameCache, i: int, j: int, T: np.ndarray, config: PoseConfig) -> np.ndarray:
     """Open3D's point-to-point information matrix of the edge i -> j, reordered to [translation, rotation]."""
-    clouds = []
-    for f in (i, j):
-        depth = sequence.depth(f)
-        mask = reliable_depth_mask(depth, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
-        clouds.append(depth_cloud(depth, K, mask).voxel_down_sample(config.graph_info_voxel_m))
     info = np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
-        clouds[0], clouds[1], config.graph_info_distance_m, T))
+        frames.info_cloud(i), frames.info_cloud(j), config.graph_info_distance_m, T))
     order = [3, 4, 5, 0, 1, 2]
     info = info[np.ix_(order, order)]
     return info + 1e-6 * np.trace(info) * np.eye(6) if np.trace(info) > 0 else np.eye(6) * 1e-6
@@ -666,7 +703,8 @@ def _edge_record(edge: Edge) -> dict:
             "score": _finite_or_none(edge.score), "weak": edge.weak, "weight": round(edge.weight, 5), "pruned": edge.pruned}
 
 
-def _estimate_pair(sequence, provider: FlowProvider, k: int, K: np.ndarray, config: PoseConfig, prior: np.ndarray) -> RelativePose:
+def _estimate_pair(sequence, provider: FlowProvider, k: int, K: np.ndarray, config: PoseConfig, prior: np.ndarray,
+                   frames: FrameCache) -> RelativePose:
     """One pair; numerical trouble (a singular system, an overflow) makes it a weak constant-velocity
     pair, recorded with its reason. Input and programming errors are not caught: they end the run."""
     start = time.perf_counter()
@@ -674,7 +712,8 @@ def _estimate_pair(sequence, provider: FlowProvider, k: int, K: np.ndarray, conf
         forward = provider.flow(k, k + 1)
         backward = provider.flow(k + 1, k)
         return estimate_relative_pose(sequence.color(k), sequence.depth(k), sequence.color(k + 1), sequence.depth(k + 1),
-                                      K, forward, config, backward_flow=backward, prior=prior)
+                                      K, forward, config, backward_flow=backward, prior=prior,
+                                      views=(frames.view(k), frames.view(k + 1)) if config.verify else None)
     except NUMERICAL_FAILURES as err:  # one degenerate pair must not end the run; the reason is recorded
         return _fallback(prior, f"{type(err).__name__}: {err}", start)
 
