@@ -48,6 +48,64 @@ def depth_cloud(depth: np.ndarray, K: np.ndarray, mask: np.ndarray, colors: np.n
 MIN_ICP_POINTS = 3  # fewer points than this in either cloud: no alignment is possible
 
 
+@dataclass(frozen=True)
+class ICPLevels:
+    """Two clouds prepared for coarse-to-fine point-to-plane ICP, reusable from any start: per level
+    (in the order given) the voxel size, the downsampled source, the downsampled target with normals
+    and the iteration count; None when a cloud has too few points to align."""
+
+    levels: tuple[tuple[float, o3d.geometry.PointCloud, o3d.geometry.PointCloud, int], ...] | None
+    distance_factor: float
+
+
+def prepare_icp(
+    source: o3d.geometry.PointCloud,
+    target: o3d.geometry.PointCloud,
+    voxel_sizes: tuple[float, ...],
+    iterations: tuple[int, ...],
+    distance_factor: float,
+    normal_radius_factor: float,
+    normal_max_nn: int,
+    max_points: int = 0,
+) -> ICPLevels:
+    """The clouds downsampled to every voxel size, target normals with radius normal_radius_factor v.
+    With ``max_points`` > 0 every voxel size grows by steps of 25% (``VOXEL_GROWTH``) until the finest
+    level leaves at most that many source points (ICP time grows faster than linearly with density)."""
+    if len(voxel_sizes) != len(iterations):
+        raise ValueError(f"{len(voxel_sizes)} ICP voxel sizes but {len(iterations)} iteration counts")
+    if len(source.points) < MIN_ICP_POINTS or len(target.points) < MIN_ICP_POINTS:
+        return ICPLevels(None, distance_factor)  # nothing to align (a frame without depth)
+    scale = _voxel_scale(source, min(voxel_sizes), max_points)
+    voxel_sizes = tuple(scale * v for v in voxel_sizes)
+    finest = min(voxel_sizes)
+    source, target = source.voxel_down_sample(finest), target.voxel_down_sample(finest)
+    levels = []
+    for voxel, steps in zip(voxel_sizes, iterations):
+        src = source if voxel == finest else source.voxel_down_sample(voxel)
+        tgt = target if voxel == finest else target.voxel_down_sample(voxel)
+        tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_factor * voxel, max_nn=normal_max_nn))
+        levels.append((voxel, src, tgt, int(steps)))
+    return ICPLevels(tuple(levels), distance_factor)
+
+
+def align(prepared: ICPLevels, init: np.ndarray) -> ICPResult:
+    """Point-to-plane ICP through the prepared levels, each starting from the previous one's result;
+    correspondences farther than distance_factor x voxel are ignored. Fitness and RMSE are the last
+    level's (fitness 0 when there was nothing to align)."""
+    registration = o3d.pipelines.registration
+    transform = np.asarray(init, dtype=np.float64)
+    fitness, rmse = 0.0, float("inf")
+    for voxel, src, tgt, steps in prepared.levels or ():
+        result = registration.registration_icp(
+            src, tgt, prepared.distance_factor * voxel, transform,
+            registration.TransformationEstimationPointToPlane(),
+            registration.ICPConvergenceCriteria(max_iteration=steps),
+        )
+        transform = np.asarray(result.transformation).copy()
+        fitness, rmse = float(result.fitness), float(result.inlier_rmse)
+    return ICPResult(transform, fitness, rmse)
+
+
 def multiscale_point_to_plane(
     source: o3d.geometry.PointCloud,
     target: o3d.geometry.PointCloud,
@@ -59,36 +117,9 @@ def multiscale_point_to_plane(
     normal_max_nn: int,
     max_points: int = 0,
 ) -> ICPResult:
-    """Point-to-plane ICP from coarse to fine voxel sizes; each level starts from the previous one.
-
-    At voxel size v the clouds are downsampled to v, target normals use radius normal_radius_factor v,
-    and correspondences farther than distance_factor v are ignored. With ``max_points`` > 0 every voxel
-    size grows by steps of 25% (``VOXEL_GROWTH``) until the finest level leaves at most that many source points (ICP
-    time grows faster than linearly with density). Fitness and RMSE are the finest level's.
-    """
-    if len(voxel_sizes) != len(iterations):
-        raise ValueError(f"{len(voxel_sizes)} ICP voxel sizes but {len(iterations)} iteration counts")
-    registration = o3d.pipelines.registration
-    transform = np.asarray(init, dtype=np.float64)
-    fitness, rmse = 0.0, float("inf")
-    if len(source.points) < MIN_ICP_POINTS or len(target.points) < MIN_ICP_POINTS:
-        return ICPResult(transform, fitness, rmse)  # nothing to align (a frame without depth): fitness 0
-    scale = _voxel_scale(source, min(voxel_sizes), max_points)
-    voxel_sizes = tuple(scale * v for v in voxel_sizes)
-    finest = min(voxel_sizes)
-    source, target = source.voxel_down_sample(finest), target.voxel_down_sample(finest)
-    for voxel, steps in zip(voxel_sizes, iterations):
-        src = source if voxel == finest else source.voxel_down_sample(voxel)
-        tgt = target if voxel == finest else target.voxel_down_sample(voxel)
-        tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_factor * voxel, max_nn=normal_max_nn))
-        result = registration.registration_icp(
-            src, tgt, distance_factor * voxel, transform,
-            registration.TransformationEstimationPointToPlane(),
-            registration.ICPConvergenceCriteria(max_iteration=int(steps)),
-        )
-        transform = np.asarray(result.transformation).copy()
-        fitness, rmse = float(result.fitness), float(result.inlier_rmse)
-    return ICPResult(transform, fitness, rmse)
+    """Point-to-plane ICP from coarse to fine voxel sizes (:func:`prepare_icp`, then :func:`align` from ``init``)."""
+    return align(prepare_icp(source, target, voxel_sizes, iterations, distance_factor, normal_radius_factor,
+                             normal_max_nn, max_points), init)
 
 
 VOXEL_GROWTH = 1.25  # the ICP point cap grows voxels by this factor per step

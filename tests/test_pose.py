@@ -139,6 +139,22 @@ def test_voxel_search_finds_the_same_voxel_as_growing_it_step_by_step(max_points
             assert _voxel_scale(cloud, voxel, max_points) == pytest.approx(_linear_voxel_scale(cloud, voxel, max_points))
 
 
+def test_one_prepared_icp_pyramid_aligns_from_any_start_as_a_fresh_one():
+    from taichi_gs.icp import align, depth_cloud, multiscale_point_to_plane, prepare_icp
+
+    _, depth_t, _, depth_t1, K = pair(MOTION, 320, 240)
+    source, target = (depth_cloud(d, K, d > 0) for d in (depth_t, depth_t1))
+    settings = ((0.04, 0.02, 0.01), (30, 20, 15), 2.0, 3.0, 30, 20000)
+    prepared = prepare_icp(source, target, *settings)
+    nudged = MOTION @ se3_exp(np.array([0.01, -0.005, 0.0, 0.0, 0.01, 0.0]))
+    for init in (np.eye(4), nudged, MOTION):
+        shared, fresh = align(prepared, init), multiscale_point_to_plane(source, target, init, *settings)
+        np.testing.assert_allclose(shared.transform, fresh.transform, rtol=0, atol=1e-12)  # Open3D sums in threads
+        assert (shared.fitness, shared.inlier_rmse) == pytest.approx((fresh.fitness, fresh.inlier_rmse), rel=1e-9)
+    empty = prepare_icp(depth_cloud(depth_t, K, depth_t < 0), target, *settings)
+    assert align(empty, nudged).fitness == 0.0 and np.array_equal(align(empty, nudged).transform, nudged)
+
+
 def test_icp_results_that_coincide_share_one_rgbd_odometry_run(monkeypatch):
     color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
     starts = []

@@ -25,7 +25,7 @@ import open3d as o3d
 from ..errors import InputError
 from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, rigid_flow, to_gray_u8
 from ..geometry import invert, se3_log
-from ..icp import depth_cloud, multiscale_point_to_plane, reliable_depth_mask, rgbd_odometry
+from ..icp import ICPLevels, align, depth_cloud, prepare_icp, reliable_depth_mask, rgbd_odometry
 from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import write_point_cloud
@@ -380,12 +380,13 @@ def _candidates(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, 
         starts[f"{FROM_ICP}-prior"] = candidates[FROM_CONSTANT_VELOCITY].transform
     if not config.use_icp:
         starts = {}
-    target_mask = reliable_depth_mask(depth_t1, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
-    source, target = depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask)
-    for name, init in starts.items():
-        icp = _icp(source, target, init, config)
-        if np.all(np.isfinite(icp.transform)):
-            candidates[name] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
+    if starts:
+        target_mask = reliable_depth_mask(depth_t1, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+        levels = _prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config)
+        for name, init in starts.items():
+            icp = align(levels, init)
+            if np.all(np.isfinite(icp.transform)):
+                candidates[name] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
     if config.rgbd_refine:
         odometry = functools.partial(rgbd_odometry, color_t, depth_t, color_t1, depth_t1, K,
                                      iterations=tuple(config.rgbd_iterations),
@@ -454,9 +455,10 @@ def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView]
     return result
 
 
-def _icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, init: np.ndarray, config: PoseConfig):
-    return multiscale_point_to_plane(
-        source, target, init, voxel_sizes=tuple(s * config.icp_voxel_m for s in config.icp_scales),
+def _prepare_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, config: PoseConfig) -> ICPLevels:
+    """The config's ICP pyramid of the two clouds, shared by every start that is aligned on them."""
+    return prepare_icp(
+        source, target, voxel_sizes=tuple(s * config.icp_voxel_m for s in config.icp_scales),
         iterations=tuple(config.icp_iterations), distance_factor=config.icp_distance_factor,
         normal_radius_factor=config.icp_normal_radius_factor, normal_max_nn=config.icp_normal_max_nn,
         max_points=config.icp_max_points,
@@ -491,7 +493,8 @@ def _refine_with_icp(result: RelativePose, depth_t: np.ndarray, depth_t1: np.nda
                      source_mask: np.ndarray, config: PoseConfig) -> None:
     """Replace the flow estimate by point-to-plane ICP unless ICP fits poorly or jumps away from it."""
     target_mask = reliable_depth_mask(depth_t1, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
-    icp = _icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), result.transform, config)
+    icp = align(_prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config),
+                result.transform)
     result.icp_fitness, result.icp_inlier_rmse_m, result.icp_transform = icp.fitness, icp.inlier_rmse, icp.transform
     jump = se3_log(icp.transform @ invert(result.transform))
     jump_m, jump_deg = float(np.linalg.norm(jump[:3])), float(np.degrees(np.linalg.norm(jump[3:])))
@@ -556,15 +559,26 @@ def flow_provider(sequence, config: PoseConfig) -> FlowProvider:
 
 
 class FrameCache:
-    """A sequence's per-frame data for verification and the pose graph (views, information clouds), each
-    computed once while among the ``keep`` frames used last: pairs and graph edges visit frames in windows."""
+    """A sequence's frames and what pairs and the pose graph derive from them (verification views,
+    information clouds), each read or computed once while among the ``keep`` frames used last: pairs
+    and graph edges visit frames in windows."""
 
     def __init__(self, sequence, K: np.ndarray, config: PoseConfig, keep: int = 16):
         settings = config.verify_settings()
+        self.color: Callable[[int], np.ndarray] = functools.lru_cache(maxsize=keep)(
+            lambda i: _read_only(sequence.color(i)))
+        self.depth: Callable[[int], np.ndarray] = functools.lru_cache(maxsize=keep)(
+            lambda i: _read_only(sequence.depth(i)))
         self.view: Callable[[int], FrameView] = functools.lru_cache(maxsize=keep)(
-            lambda i: frame_view(sequence.color(i), sequence.depth(i), K, settings))
+            lambda i: frame_view(self.color(i), self.depth(i), K, settings))
         self.info_cloud: Callable[[int], o3d.geometry.PointCloud] = functools.lru_cache(maxsize=keep)(
-            lambda i: _information_cloud(sequence.depth(i), K, config))
+            lambda i: _information_cloud(self.depth(i), K, config))
+
+
+def _read_only(image: np.ndarray) -> np.ndarray:
+    """``image`` marked read-only: a cached frame is shared by every pair and edge that uses it."""
+    image.flags.writeable = False
+    return image
 
 
 def _information_cloud(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> o3d.geometry.PointCloud:
@@ -591,7 +605,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
         relative = _load_pair(pair_dir / f"{k:06d}.json", key)
         if relative is None:
             prior = relatives[-1].transform if relatives else np.eye(4)
-            relative = _estimate_pair(sequence, provider, k, K, config, prior, frames)
+            relative = _estimate_pair(frames, provider, k, K, config, prior)
             write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
         relatives.append(relative)
         if progress is not None:
@@ -630,28 +644,28 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
                           r.estimate, r.score, r.weak))
     for k in config.graph_skips:
         for i in range(n - int(k)):
-            edge = _graph_edge(sequence, frames, i, i + int(k), chained, K, config, "skip", max_score)
+            edge = _graph_edge(frames, i, i + int(k), chained, K, config, "skip", max_score)
             if edge is not None:
                 edges.append(edge)
     if config.loop_closures:
         for i, j in _loop_candidates(chained, config):
-            edge = _graph_edge(sequence, frames, i, j, chained, K, config, "loop", max_score)
+            edge = _graph_edge(frames, i, j, chained, K, config, "loop", max_score)
             if edge is not None:
                 edges.append(edge)
     return optimise(chained, edges), edges
 
 
-def _graph_edge(sequence, frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig,
+def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig,
                 kind: str, max_score: float) -> Edge | None:
     """A verified edge camera i -> camera j started from the current poses, or None when it is weak, scores
     above ``max_score`` or is no better than the poses it started from."""
     init = invert(poses[j]) @ poses[i]
-    color_i, depth_i, color_j, depth_j = sequence.color(i), sequence.depth(i), sequence.color(j), sequence.depth(j)
+    color_i, depth_i, color_j, depth_j = frames.color(i), frames.depth(i), frames.color(j), frames.depth(j)
     candidates = {"chain": Candidate(init)}
     if config.graph_icp:
         mask_i = reliable_depth_mask(depth_i, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
         mask_j = reliable_depth_mask(depth_j, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
-        icp = _icp(depth_cloud(depth_i, K, mask_i), depth_cloud(depth_j, K, mask_j), init, config)
+        icp = align(_prepare_icp(depth_cloud(depth_i, K, mask_i), depth_cloud(depth_j, K, mask_j), config), init)
         if np.all(np.isfinite(icp.transform)):
             candidates["icp-chain"] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
     for name in list(candidates):
@@ -703,15 +717,15 @@ def _edge_record(edge: Edge) -> dict:
             "score": _finite_or_none(edge.score), "weak": edge.weak, "weight": round(edge.weight, 5), "pruned": edge.pruned}
 
 
-def _estimate_pair(sequence, provider: FlowProvider, k: int, K: np.ndarray, config: PoseConfig, prior: np.ndarray,
-                   frames: FrameCache) -> RelativePose:
+def _estimate_pair(frames: FrameCache, provider: FlowProvider, k: int, K: np.ndarray, config: PoseConfig,
+                   prior: np.ndarray) -> RelativePose:
     """One pair; numerical trouble (a singular system, an overflow) makes it a weak constant-velocity
     pair, recorded with its reason. Input and programming errors are not caught: they end the run."""
     start = time.perf_counter()
     try:
         forward = provider.flow(k, k + 1)
         backward = provider.flow(k + 1, k)
-        return estimate_relative_pose(sequence.color(k), sequence.depth(k), sequence.color(k + 1), sequence.depth(k + 1),
+        return estimate_relative_pose(frames.color(k), frames.depth(k), frames.color(k + 1), frames.depth(k + 1),
                                       K, forward, config, backward_flow=backward, prior=prior,
                                       views=(frames.view(k), frames.view(k + 1)) if config.verify else None)
     except NUMERICAL_FAILURES as err:  # one degenerate pair must not end the run; the reason is recorded
