@@ -106,22 +106,6 @@ def align(prepared: ICPLevels, init: np.ndarray) -> ICPResult:
     return ICPResult(transform, fitness, rmse)
 
 
-def multiscale_point_to_plane(
-    source: o3d.geometry.PointCloud,
-    target: o3d.geometry.PointCloud,
-    init: np.ndarray,
-    voxel_sizes: tuple[float, ...],
-    iterations: tuple[int, ...],
-    distance_factor: float,
-    normal_radius_factor: float,
-    normal_max_nn: int,
-    max_points: int = 0,
-) -> ICPResult:
-    """Point-to-plane ICP from coarse to fine voxel sizes (:func:`prepare_icp`, then :func:`align` from ``init``)."""
-    return align(prepare_icp(source, target, voxel_sizes, iterations, distance_factor, normal_radius_factor,
-                             normal_max_nn, max_points), init)
-
-
 VOXEL_GROWTH = 1.25  # the ICP point cap grows voxels by this factor per step
 _PROBE_STEP = 12  # the voxel search's first count, 1.25^12 ~ 15x coarser than the finest voxel (cheap)
 

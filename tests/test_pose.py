@@ -105,7 +105,7 @@ def test_rgbd_refinement_replaces_the_icp_estimate_when_it_stays_close():
 
 
 def test_icp_point_cap_coarsens_the_voxels_and_stays_accurate():
-    from taichi_gs.icp import _voxel_scale, depth_cloud, multiscale_point_to_plane
+    from taichi_gs.icp import _voxel_scale, align, depth_cloud, prepare_icp
 
     _, depth_t, _, depth_t1, K = pair(MOTION, 320, 240)
     source, target = (depth_cloud(d, K, d > 0) for d in (depth_t, depth_t1))
@@ -113,7 +113,7 @@ def test_icp_point_cap_coarsens_the_voxels_and_stays_accurate():
     scale = _voxel_scale(source, 0.01, 20000)  # 76k points at 1 cm
     assert scale > 1.0 and len(source.voxel_down_sample(0.01 * scale).points) <= 20000
     assert len(source.voxel_down_sample(0.01 * scale / 1.25).points) > 20000
-    result = multiscale_point_to_plane(source, target, np.eye(4), (0.04, 0.02, 0.01), (30, 20, 15), 2.0, 3.0, 30, max_points=20000)
+    result = align(prepare_icp(source, target, (0.04, 0.02, 0.01), (30, 20, 15), 2.0, 3.0, 30, max_points=20000), np.eye(4))
     assert np.linalg.norm(result.transform[:3, 3] - MOTION[:3, 3]) < 2e-3  # 0.7 mm measured (no cap: 0.04 mm)
     assert rotation_error_deg(result.transform, MOTION) < 0.1
 
@@ -140,7 +140,7 @@ def test_voxel_search_finds_the_same_voxel_as_growing_it_step_by_step(max_points
 
 
 def test_one_prepared_icp_pyramid_aligns_from_any_start_as_a_fresh_one():
-    from taichi_gs.icp import align, depth_cloud, multiscale_point_to_plane, prepare_icp
+    from taichi_gs.icp import align, depth_cloud, prepare_icp
 
     _, depth_t, _, depth_t1, K = pair(MOTION, 320, 240)
     source, target = (depth_cloud(d, K, d > 0) for d in (depth_t, depth_t1))
@@ -148,7 +148,7 @@ def test_one_prepared_icp_pyramid_aligns_from_any_start_as_a_fresh_one():
     prepared = prepare_icp(source, target, *settings)
     nudged = MOTION @ se3_exp(np.array([0.01, -0.005, 0.0, 0.0, 0.01, 0.0]))
     for init in (np.eye(4), nudged, MOTION):
-        shared, fresh = align(prepared, init), multiscale_point_to_plane(source, target, init, *settings)
+        shared, fresh = align(prepared, init), align(prepare_icp(source, target, *settings), init)
         np.testing.assert_allclose(shared.transform, fresh.transform, rtol=0, atol=1e-12)  # Open3D sums in threads
         assert (shared.fitness, shared.inlier_rmse) == pytest.approx((fresh.fitness, fresh.inlier_rmse), rel=1e-9)
     empty = prepare_icp(depth_cloud(depth_t, K, depth_t < 0), target, *settings)
