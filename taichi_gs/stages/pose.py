@@ -576,9 +576,11 @@ class FrameCache:
 
 
 def _read_only(image: np.ndarray) -> np.ndarray:
-    """``image`` marked read-only: a cached frame is shared by every pair and edge that uses it."""
-    image.flags.writeable = False
-    return image
+    """A read-only view of ``image`` (the sequence's own array keeps its flags): a cached frame is shared
+    by every pair and edge that uses it."""
+    view = image.view()
+    view.flags.writeable = False
+    return view
 
 
 def _information_cloud(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> o3d.geometry.PointCloud:
