@@ -37,7 +37,7 @@ import numpy as np
 from taichi_gs.evaluate import ate, rpe
 from taichi_gs.flow import dis_flow, to_gray_u8
 from taichi_gs.geometry import backproject, invert
-from taichi_gs.icp import align, depth_cloud, prepare_icp, reliable_depth_mask, rgbd_odometry
+from taichi_gs.icp import align, depth_cloud, prepare_icp, rgbd_odometry
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.stages.pose import PoseConfig, chain_poses, run_pose
 
@@ -83,7 +83,7 @@ def run_icp(sequence, config: PoseConfig = PoseConfig(icp_max_points=80000)):
         clouds = []
         for i in (k, k + 1):
             depth = sequence.depth(i)
-            clouds.append(depth_cloud(depth, K, reliable_depth_mask(depth, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)))
+            clouds.append(depth_cloud(depth, K, config.reliable_depth(depth)))
         pyramid = prepare_icp(clouds[0], clouds[1], tuple(s * config.icp_voxel_m for s in config.icp_scales),
                               config.icp_iterations, config.icp_distance_factor, config.icp_normal_radius_factor,
                               config.icp_normal_max_nn, config.icp_max_points)

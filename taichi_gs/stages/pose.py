@@ -153,6 +153,10 @@ class PoseConfig:
             depth_edge_ratio=self.depth_edge_ratio,
         )
 
+    def reliable_depth(self, depth: np.ndarray) -> np.ndarray:
+        """Mask of ``depth``'s pixels that clouds and ICP may use (:func:`taichi_gs.icp.reliable_depth_mask`)."""
+        return reliable_depth_mask(depth, self.min_depth_m, self.max_depth_m, self.depth_edge_ratio)
+
     def pair_key(self) -> str:
         """Hash of the fields that change a pair's result (not the fused cloud's voxel size nor the graph's)."""
         values = {k: v for k, v in dataclasses.asdict(self).items() if k not in _NOT_PAIR_FIELDS}
@@ -318,7 +322,7 @@ def _align(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth
     """One attempt with the given flows: the two solver phases from identity, then ICP and either the
     verification of every candidate (``views`` given) or the method's guards."""
     start = time.perf_counter()
-    source_mask = reliable_depth_mask(depth_t, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+    source_mask = config.reliable_depth(depth_t)
     samples = sample_pair(color_t, depth_t, color_t1, depth_t1, K, flow, backward_flow, source_mask, config)
     flow_T, iterations, reason = _flow_solve(samples, config)
     if views is None and flow_T is None:
@@ -381,7 +385,7 @@ def _candidates(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, 
     if not config.use_icp:
         starts = {}
     if starts:
-        target_mask = reliable_depth_mask(depth_t1, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+        target_mask = config.reliable_depth(depth_t1)
         levels = _prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config)
         for name, init in starts.items():
             icp = align(levels, init)
@@ -492,7 +496,7 @@ def sample_pair(
 def _refine_with_icp(result: RelativePose, depth_t: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
                      source_mask: np.ndarray, config: PoseConfig) -> None:
     """Replace the flow estimate by point-to-plane ICP unless ICP fits poorly or jumps away from it."""
-    target_mask = reliable_depth_mask(depth_t1, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+    target_mask = config.reliable_depth(depth_t1)
     icp = align(_prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config),
                 result.transform)
     result.icp_fitness, result.icp_inlier_rmse_m, result.icp_transform = icp.fitness, icp.inlier_rmse, icp.transform
@@ -542,7 +546,7 @@ def fuse_points(sequence, poses: np.ndarray, config: PoseConfig) -> tuple[np.nda
     fused = o3d.geometry.PointCloud()
     for i, pose in enumerate(poses):
         depth = sequence.depth(i)
-        mask = reliable_depth_mask(depth, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+        mask = config.reliable_depth(depth)
         cloud = depth_cloud(depth, K, mask, sequence.color(i)).transform(pose)
         fused += cloud.voxel_down_sample(config.voxel_size_m)
         fused = fused.voxel_down_sample(config.voxel_size_m)
@@ -585,7 +589,7 @@ def _read_only(image: np.ndarray) -> np.ndarray:
 
 def _information_cloud(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> o3d.geometry.PointCloud:
     """A frame's reliable depth as a cloud at the information matrices' voxel size."""
-    mask = reliable_depth_mask(depth, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+    mask = config.reliable_depth(depth)
     return depth_cloud(depth, K, mask).voxel_down_sample(config.graph_info_voxel_m)
 
 
@@ -631,11 +635,10 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
 
 
 def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray, config: PoseConfig,
-                      frames: FrameCache | None = None) -> tuple[np.ndarray, list[Edge]]:
+                      frames: FrameCache) -> tuple[np.ndarray, list[Edge]]:
     """[ours] Poses from a robust pose graph over the pairs, skip edges and loop closures (see PoseConfig);
-    ``frames``: the run's per-frame cache, if there is one."""
+    ``frames``: the run's per-frame cache, shared with the pairs."""
     K = sequence.intrinsics.K()
-    frames = frames or FrameCache(sequence, K, config)
     n = len(sequence)
     scores = [r.score for r in relatives if np.isfinite(r.score)]
     max_score = config.graph_max_score_ratio * float(np.median(scores)) if scores else config.verify_max_score
@@ -665,8 +668,8 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
     color_i, depth_i, color_j, depth_j = frames.color(i), frames.depth(i), frames.color(j), frames.depth(j)
     candidates = {"chain": Candidate(init)}
     if config.graph_icp:
-        mask_i = reliable_depth_mask(depth_i, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
-        mask_j = reliable_depth_mask(depth_j, config.min_depth_m, config.max_depth_m, config.depth_edge_ratio)
+        mask_i = config.reliable_depth(depth_i)
+        mask_j = config.reliable_depth(depth_j)
         icp = align(_prepare_icp(depth_cloud(depth_i, K, mask_i), depth_cloud(depth_j, K, mask_j), config), init)
         if np.all(np.isfinite(icp.transform)):
             candidates["icp-chain"] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
