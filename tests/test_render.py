@@ -229,6 +229,25 @@ def test_empty_scene() -> None:
     assert grads.means.shape == (0, 3) and not grads.pose.any()
 
 
+def test_memory_order_of_the_gaussians_changes_nothing() -> None:
+    """The Morton reordering of stage 3 (spatial_order) only moves rows: the images, the pose gradient
+    and every Gaussian's gradient (permuted back) are those of the original order, in float64."""
+    from taichi_gs.gaussian_store import morton_order
+
+    scene = make_scene(11, n=60, n_sh=4, dense=40)
+    order = morton_order(scene[0])
+    assert not np.array_equal(order, np.arange(len(order)))
+    weights = loss_weights(12)
+    plain = rasterize(*scene, K, POSE, WIDTH, HEIGHT, background=BACKGROUND, precision="f64")
+    moved = rasterize(*[a[order] for a in scene], K, POSE, WIDTH, HEIGHT, background=BACKGROUND, precision="f64")
+    for a, b in zip((plain.rgb, plain.depth, plain.alpha), (moved.rgb, moved.depth, moved.alpha)):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-6)  # float32 images of float64 renders
+    g_plain, g_moved = plain.backward(*weights), moved.backward(*weights)
+    np.testing.assert_allclose(g_moved.pose, g_plain.pose, rtol=1e-10, atol=1e-12)
+    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        np.testing.assert_allclose(getattr(g_moved, name), getattr(g_plain, name)[order], rtol=1e-10, atol=1e-12)
+
+
 def test_device_api_views_accumulate_gradients() -> None:
     """Two views rendered before either backward; gradients add up across backward calls."""
     import taichi as ti
