@@ -50,6 +50,7 @@ OURS = {
     "ours": {},
     "ours no flow check": {"verify_flow_weight": 0.0},
     "ours flow weight 0.2": {"verify_flow_weight": 0.2},
+    "ours light graph odometry": {"graph_rgbd_iterations": (10, 5, 3)},
     "ours no verify": {"verify": False, "pose_graph": False},
     "method": METHOD_ONLY,
 }

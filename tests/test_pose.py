@@ -232,6 +232,18 @@ def test_each_frame_view_is_computed_once_for_pairs_and_graph(tmp_path, walk_seq
     assert len(computed) == len(walk_sequence) and all(len(f) == 1 for f in frames)  # once per frame
 
 
+def test_graph_edges_take_their_own_odometry_iterations_and_pairs_stay_cached(tmp_path, walk_sequence, monkeypatch):
+    run_pose(walk_sequence, tmp_path, PoseConfig())
+    iterations = []
+    original = pose_stage.rgbd_odometry
+    monkeypatch.setattr(pose_stage, "rgbd_odometry",
+                        lambda *args, **kwargs: iterations.append(args[6]) or original(*args, **kwargs))
+    light = PoseConfig(graph_rgbd_iterations=(10, 5, 3))
+    assert light.pair_key() == PoseConfig().pair_key()
+    run_pose(walk_sequence, tmp_path, light)
+    assert iterations and set(iterations) == {(10, 5, 3)}  # only the graph's edges ran: the pairs came from the cache
+
+
 def test_frame_without_depth_becomes_weak_constant_velocity_pairs(tmp_path):
     poses = walk(5)
     sequence = SceneSequence(poses, broken_depth={2})

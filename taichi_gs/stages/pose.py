@@ -123,6 +123,9 @@ class PoseConfig:
     pose_graph: bool = True
     graph_skips: tuple = (2, 3)
     graph_icp: bool = False
+    # [ours] RGB-D odometry iterations per pyramid level of the extra edges, which start from the chained
+    # poses (the pairs' own odometry keeps rgbd_iterations)
+    graph_rgbd_iterations: tuple = (20, 10, 5)
     graph_max_score_ratio: float = 1.5  # extra edges scoring above this x the median pair score are dropped
     graph_weak_weight: float = 0.01  # information scale of weak (i, i+1) pairs, kept to connect the graph
     graph_info_voxel_m: float = 0.02  # clouds of the information matrices (Open3D, point-to-point)
@@ -164,7 +167,8 @@ class PoseConfig:
 
 
 # Fields that do not change a pair's own result (excluded from the pair cache's key).
-_NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_max_score_ratio", "graph_weak_weight",
+_NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_rgbd_iterations",
+                    "graph_max_score_ratio", "graph_weak_weight",
                     "graph_info_voxel_m", "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every",
                     "loop_max_distance_m", "loop_max_angle_deg"}
 
@@ -675,7 +679,7 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
             candidates["icp-chain"] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
     for name in list(candidates):
         refined = rgbd_odometry(color_i, depth_i, color_j, depth_j, K, candidates[name].transform,
-                                tuple(config.rgbd_iterations), config.rgbd_depth_diff_max_m,
+                                tuple(config.graph_rgbd_iterations), config.rgbd_depth_diff_max_m,
                                 (config.min_depth_m, config.max_depth_m))
         if refined is not None and np.all(np.isfinite(refined)):
             candidates[f"rgbd-{name}"] = Candidate(refined)
