@@ -143,8 +143,9 @@ PRESETS = {
                          # [ours] held-out fits by Rprop: 20 steps score like Adam's 30 on the sample and on a real
                          # capture (BENCHMARKS, "Held-out fits by Rprop"); the Adam fit took 30
                          test_pose_iterations=20, test_fit="rprop",
-                         # [ours] Gaussians in Morton order in memory: 0.86-0.88x the stage-3 CPU-seconds on the sample and
-                         # a 60-frame sequence, held-out PSNR within 0.01 dB (BENCHMARKS, "Morton order on in the fast preset")
+                         # [ours] Gaussians in Morton order in memory: 0.86-0.88x the stage-3 CPU-seconds on the
+                         # sample and a 60-frame sequence, held-out PSNR within 0.01 dB (BENCHMARKS, "Morton order
+                         # on in the fast preset")
                          spatial_order=True),
 }
 
