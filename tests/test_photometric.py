@@ -3,7 +3,6 @@ and stage 3's schedule helpers."""
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 

@@ -223,7 +223,8 @@ def test_rerun_reads_cached_pairs_and_recomputes_after_a_config_change(tmp_path,
 def test_each_frame_view_is_computed_once_for_pairs_and_graph(tmp_path, walk_sequence, monkeypatch):
     computed, edges = [], []
     original_view, original_edge = pose_stage.frame_view, pose_stage._graph_edge
-    monkeypatch.setattr(pose_stage, "frame_view", lambda color, *a, **k: computed.append(color) or original_view(color, *a, **k))
+    monkeypatch.setattr(pose_stage, "frame_view",
+                        lambda color, *a, **k: computed.append(color) or original_view(color, *a, **k))
     monkeypatch.setattr(pose_stage, "_graph_edge", lambda *a, **k: edges.append(1) or original_edge(*a, **k))
     run_pose(walk_sequence, tmp_path, PoseConfig())
     assert len(edges) == 5  # skip edges (i, i + 2) and (i, i + 3) verified on the pairs' views
@@ -236,8 +237,11 @@ def test_graph_edges_take_their_own_odometry_iterations_and_pairs_stay_cached(tm
     run_pose(walk_sequence, tmp_path, PoseConfig())
     iterations = []
     original = pose_stage.rgbd_odometry
-    monkeypatch.setattr(pose_stage, "rgbd_odometry",
-                        lambda *args, **kwargs: iterations.append(args[6]) or original(*args, **kwargs))
+    def recording(*args, **kwargs):
+        iterations.append(kwargs["iterations"] if "iterations" in kwargs else args[6])  # pairs pass it by name
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(pose_stage, "rgbd_odometry", recording)
     light = PoseConfig(graph_rgbd_iterations=(10, 5, 3))
     assert light.pair_key() == PoseConfig().pair_key()
     run_pose(walk_sequence, tmp_path, light)

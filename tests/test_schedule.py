@@ -106,8 +106,8 @@ def test_coarse_to_fine_with_k_per_exposure_deblurs_held_out_views_at_full_size(
     sequence = load_sequence(tmp_path / "seq")
     out = tmp_path / "out"
     write_refine_outputs(sequence, out, voxel=0.05)
-    config = dataclasses.replace(deblur.PRESETS["fast"], iterations_per_view=0, k=7, iterations=200, densify_from=100, densify_until=150,
-                                 exposure_from=60, test_pose_iterations=10, checkpoint_every=100, coarse_scale=2,
+    config = dataclasses.replace(deblur.PRESETS["fast"], iterations_per_view=0, k=7, iterations=200, densify_from=100,
+                                 densify_until=150, exposure_from=60, test_pose_iterations=10, checkpoint_every=100, coarse_scale=2,
                                  coarse_fraction=0.5, adaptive_k=True, k_min=3)
     ks: list[int] = []
     original = deblur.BlurScene.step
