@@ -12,8 +12,7 @@ import numpy as np
 from .density import DensityControl
 from .gaussian_store import FIELDS, GaussianStore, morton_order
 from .geometry import exposure_pose_gradients, raster_intrinsics, virtual_pose
-from .photometric import affine_backward, apply_affine
-from .render import Camera, Rasterizer, blur, losses, to_device
+from .render import Camera, Rasterizer, affine, blur, losses, to_device
 from .splats import Splats, logit, rgb_to_sh_dc
 
 TRAINED = FIELDS  # every parameter of a full 3D Gaussian learns in stage 3
@@ -102,16 +101,14 @@ class BlurScene:
         self.grad_depth.fill(0.0)
         predicted, grad_predicted = self.blurred, self.grad_blur
         if colour is not None:
-            blurred = self.blurred.to_numpy()
-            self.compensated.from_numpy(np.ascontiguousarray(apply_affine(blurred, colour), np.float32))
+            affine.forward(self.blurred, colour, self.compensated)
             self.grad_compensated.fill(0.0)
             predicted, grad_predicted = self.compensated, self.grad_compensated
         l1 = losses.l1(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim)
         dssim = losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim)
         grad_colour = None
         if colour is not None:
-            grad_image, grad_colour = affine_backward(blurred, colour, self.grad_compensated.to_numpy())
-            self.grad_blur.from_numpy(np.ascontiguousarray(grad_image, np.float32))
+            grad_colour = affine.backward(self.blurred, colour, self.grad_compensated, self.grad_blur)
         depth_l1 = 0.0
         if lambda_depth > 0:
             self.depth_target.from_numpy(np.ascontiguousarray(depth, np.float32))
@@ -125,7 +122,7 @@ class BlurScene:
         if rates is not None:
             self.density.observe(self.store, virtual_pose(base, d_start, d_end, taus[mid]), self.K[0, 0])
             self.store.step(vars(rates))
-        mse = float(np.mean((np.clip(predicted.to_numpy(), 0, 1) - frame) ** 2))
+        mse = losses.clipped_mse(predicted, self.frame)
         return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
                         g_start, g_end, grad_colour)
 

@@ -13,6 +13,7 @@ import numpy as np
 
 from .gaussian_store import GaussianStore
 from .geometry import quat_to_rotmat
+from .render import density_stats
 from .splats import logit
 
 SPLIT_SHRINK = 1.6  # a split Gaussian's two halves are this much smaller (3DGS)
@@ -58,11 +59,10 @@ class DensityControl:
 
     def observe(self, store: GaussianStore, cam_to_world: np.ndarray, focal: float) -> None:
         """Add each Gaussian's positional gradient of this step, in image-plane pixels (|g| z / f)."""
-        grad = np.linalg.norm(store.gaussians.grads["means"].to_numpy()[: store.count], axis=1)
-        means = store.array("means")
-        z = np.abs((means - cam_to_world[:3, 3]) @ cam_to_world[:3, 2])
-        seen = grad > 0
-        self.grad_sum[seen] += grad[seen] * z[seen] / focal
+        params, grads = store.gaussians.params, store.gaussians.grads
+        pixels = density_stats.image_plane_gradient(params["means"], grads["means"], store.count, cam_to_world, focal)
+        seen = pixels >= 0
+        self.grad_sum[seen] += pixels[seen]
         self.grad_count[seen] += 1
 
     def reorder(self, order: np.ndarray) -> None:

@@ -183,7 +183,7 @@ def _wrap_forward(rasterizer_class: Any, profiler: Profiler) -> None:
 def install(profiler: Profiler) -> None:
     """Wrap the stages' work functions with ``profiler``'s timers (for the rest of the process)."""
     from . import deblur_model, density, pipeline, refine_model
-    from .kernels import blur, losses, optim, splat
+    from .kernels import affine, blur, losses, optim, splat
     from .stages import checkpoint, deblur, divergence, refine
 
     profiler.sync = splat.sync
@@ -192,17 +192,19 @@ def install(profiler: Profiler) -> None:
         (splat.Rasterizer, "backward", "render backward"),
         (losses, "l1", "losses (device)"), (losses, "dssim", "losses (device)"),
         (losses, "masked_depth_l1", "losses (device)"), (losses, "opacity_binarization", "losses (device)"),
+        (losses, "clipped_mse", "losses (device)"),
+        (affine, "forward", "colour transform (device)"), (affine, "backward", "colour transform (device)"),
         (refine_model, "depth_losses", "losses (host, NumPy)"),
         (blur, "average", "k-view average / spread"), (blur, "spread", "k-view average / spread"),
         (optim.Adam, "step", "Adam (Gaussians)"),
         (deblur_model, "exposure_pose_gradients", "exposure gradients (host)"),
-        (density.DensityControl, "observe", "densification statistics (host)"),
+        (density.DensityControl, "observe", "densification statistics"),
         (density.DensityControl, "densify_and_prune", "densify / prune / fill"),
         (deblur, "fill_uncovered", "densify / prune / fill"),
         (refine_model.DepthRefiner, "prune", "densify / prune / fill"),
         (refine_model.DepthRefiner, "reset_opacity", "densify / prune / fill"),
-        (deblur_model.BlurScene, "step", "step host work (uploads, PSNR, colour transform)"),
-        (refine_model.DepthRefiner, "step", "step host work (uploads, PSNR, colour transform)"),
+        (deblur_model.BlurScene, "step", "step host work (uploads, fills)"),
+        (refine_model.DepthRefiner, "step", "step host work (uploads, fills)"),
         (deblur, "_refine_test_exposure", "test-view exposure fits"),
         (divergence.DivergenceGuard, "check_parameters", "divergence checks (parameter download)"),
         (checkpoint, "save", "checkpoints (I/O)"),

@@ -235,3 +235,24 @@ def test_morton_order_interleaves_x_y_z_and_reorder_moves_moments_with_rows():
     assert model.store.adam.t == 7
     with pytest.raises(ValueError, match="permutation"):
         model.store.reorder(np.array([0, 0, 1, 2, 3, 4]))
+
+
+def test_observe_adds_each_gaussians_gradient_in_pixels_and_skips_the_unseen():
+    """The device statistic against |dL/dmean| z / f written here in NumPy (z along the camera's axis);
+    a Gaussian with an exactly zero gradient is not counted."""
+    model = _model()
+    rng = np.random.default_rng(2)
+    grads = rng.normal(size=(model.count, 3)).astype(np.float32)
+    grads[2] = 0.0
+    model.gaussians.grads["means"].from_numpy(grads)
+    pose = np.eye(4)
+    pose[:3, :3] = quat_to_rotmat(np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2]))
+    pose[:3, 3] = [0.2, -0.1, -0.5]
+    sums, counts = model.density.grad_sum.copy(), model.density.grad_count.copy()
+    model.density.observe(model.store, pose, K[0, 0])
+    z = np.abs((model.arrays()["means"].astype(np.float64) - pose[:3, 3]) @ pose[:3, 2])
+    expected = np.linalg.norm(grads.astype(np.float64), axis=1) * z / K[0, 0]
+    seen = np.arange(model.count) != 2
+    np.testing.assert_allclose(model.density.grad_sum[seen], sums[seen] + expected[seen], rtol=1e-6)
+    np.testing.assert_array_equal(model.density.grad_count, counts + seen)
+    assert model.density.grad_sum[2] == sums[2]

@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import taichi as ti
 
+from taichi_gs.kernels import runtime
 from taichi_gs.photometric import IDENTITY, affine_backward, apply_affine, identity_penalty
+from taichi_gs.render import affine, to_device
 from taichi_gs.stages.deblur import PRESETS, scaled_schedule, training_frame
 
 
@@ -34,6 +37,24 @@ def test_affine_gradients_match_finite_differences():
         fd_image[idx] = (_loss(image + step, M, weights) - _loss(image - step, M, weights)) / (2 * h)
         assert grad_image[idx] == pytest.approx(fd_image[idx], rel=1e-6, abs=1e-8)
     assert np.allclose(grad_M, fd_M, rtol=1e-6, atol=1e-8)
+
+
+def test_device_transform_matches_the_numpy_reference_in_float64():
+    """kernels/affine (what stage 3 runs each step) against apply_affine / affine_backward above."""
+    runtime.init()
+    rng = np.random.default_rng(3)
+    image = rng.uniform(0, 1, (9, 70, 3))
+    M = IDENTITY + 0.1 * rng.normal(size=(3, 4))
+    grad_out = rng.normal(size=image.shape)
+    out, grad_image = to_device(np.zeros(image.shape), ti.f64), to_device(np.full(image.shape, 7.0), ti.f64)
+    affine.forward(to_device(image, ti.f64), M, out)
+    np.testing.assert_allclose(out.to_numpy(), apply_affine(image, M), rtol=1e-12, atol=1e-14)
+    grad_M = affine.backward(to_device(image, ti.f64), M, to_device(grad_out, ti.f64), grad_image)
+    want_image, want_M = affine_backward(image, M, grad_out)
+    np.testing.assert_allclose(grad_image.to_numpy(), want_image, rtol=1e-12, atol=1e-14)  # overwritten, not added
+    np.testing.assert_allclose(grad_M, want_M, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="shape"):
+        affine.forward(to_device(image, ti.f64), M, to_device(np.zeros((9, 70, 1)), ti.f64))
 
 
 def test_identity_is_a_no_op_and_the_pull_gradient_is_exact():

@@ -58,8 +58,9 @@ def _dssim(x: np.ndarray, y: np.ndarray) -> float:
     return float(1.0 - ssim.mean())
 
 
-def _loss_f64(gaussians, rasterizer: Rasterizer, frame, depth, d_start, d_end) -> float:
-    """The stage-3 loss of one frame, from float64 renders, in NumPy."""
+def _loss_f64(gaussians, rasterizer: Rasterizer, frame, depth, d_start, d_end, colour=None) -> float:
+    """The stage-3 loss of one frame, from float64 renders, in NumPy (``colour``: the frame's 3 x 4
+    affine transform applied to the k-view mean)."""
     taus = exposure_taus(K_VIEWS)
     mid = int(np.argmin(np.abs(taus - 0.5)))
     rgbs, depths = [], []
@@ -69,6 +70,8 @@ def _loss_f64(gaussians, rasterizer: Rasterizer, frame, depth, d_start, d_end) -
         rgbs.append(view.rgb.to_numpy())
         depths.append(view.depth.to_numpy())
     blurred = np.mean(rgbs, axis=0)
+    if colour is not None:
+        blurred = blurred @ colour[:, :3].T + colour[:, 3]
     l1 = np.abs(blurred - frame).mean()
     valid = depth > 0
     depth_l1 = np.abs(depths[mid] - depth)[valid].sum() / max(valid.sum(), 1)
@@ -190,3 +193,53 @@ def test_float32_step_agrees_with_float64(problem):
     for name, (g32, g64) in pairs.items():
         assert np.linalg.norm(g64) > 0, name
         assert np.linalg.norm(g32 - g64) <= 1e-4 * np.linalg.norm(g64), name
+
+
+def test_stage3_step_with_a_colour_transform_matches_finite_differences(problem):
+    """With a frame's affine colour transform (done on device): the transform's own gradient, the
+    exposure gradients and a few colour gradients through it, the loss and the PSNR it reports."""
+    splats, frame, depth = problem
+    colour = np.hstack([np.eye(3), np.zeros((3, 1))]) + 0.05 * np.random.default_rng(7).normal(size=(3, 4))
+    model = _f64_blur_scene(splats)
+    step = model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, LAMBDA_DSSIM, LAMBDA_DEPTH, rates=None,
+                      colour=colour)
+    grads = model.gaussians.download(grads=True)
+    params = model.arrays()
+    frame64, depth64 = frame.astype(np.float64), depth.astype(np.float64)
+
+    def loss(arrays=None, M=colour, d_start=D_START) -> float:
+        model.gaussians.upload(**(arrays or params))
+        return _loss_f64(model.gaussians, model.rasterizer, frame64, depth64, d_start, D_END, M)
+
+    reported = (1 - LAMBDA_DSSIM) * step.losses["l1"] + LAMBDA_DSSIM * step.losses["dssim"] \
+        + LAMBDA_DEPTH * step.losses["depth"]
+    assert reported == pytest.approx(loss(), rel=1e-9)
+    reblurred = model.render_blurred(BASE, D_START, D_END, K_VIEWS).astype(np.float64) @ colour[:, :3].T + colour[:, 3]
+    mse = np.mean((np.clip(reblurred, 0, 1) - frame64) ** 2)
+    assert step.psnr == pytest.approx(-10 * np.log10(mse), rel=1e-5)
+
+    errors = {}
+    scale = float(np.abs(step.grad_colour).max())
+    for idx in np.ndindex(3, 4):
+        def f(h, idx=idx):
+            moved = colour.copy()
+            moved[idx] += h
+            return loss(M=moved)
+        errors[f"colour{idx}"] = _fd_error(float(step.grad_colour[idx]), f, scale)
+    scale = float(np.abs(step.grad_start).max())
+    for c in range(6):
+        def exposure(h, c=c):
+            return loss(d_start=D_START + h * np.eye(6)[c])
+        errors[f"d_start[{c}]"] = _fd_error(float(step.grad_start[c]), exposure, scale)
+    seen = np.flatnonzero(np.abs(grads["colors"][:, 0]).sum(axis=1) > 0)
+    scale = float(np.abs(grads["colors"][seen, 0]).max())
+    for i in seen[:4]:
+        for c in range(3):
+            def g(h, i=i, c=c):
+                moved = dict(params)
+                moved["colors"] = params["colors"].copy()
+                moved["colors"][i, 0, c] += h
+                return loss(moved)
+            errors[f"colors[{i}, {c}]"] = _fd_error(float(grads["colors"][i, 0, c]), g, scale)
+    loss()  # restore
+    assert max(errors.values()) < 1e-4, errors

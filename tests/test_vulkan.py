@@ -73,10 +73,11 @@ def scene_outputs(name: str, subgroup: bool | None = None) -> dict[str, np.ndarr
 
 
 def kernel_outputs() -> dict[str, np.ndarray]:
-    """Loss values and gradients, blur average / spread, and three Adam steps (f32)."""
+    """Loss values and gradients, blur average / spread, the colour transform and its gradients, the
+    densification statistic, and three Adam steps on (N,), (N, C) and (N, A, B) parameters (f32)."""
     import taichi as ti
 
-    from taichi_gs.kernels import blur, losses
+    from taichi_gs.kernels import affine, blur, density_stats, losses
     from taichi_gs.kernels.optim import Adam
     from taichi_gs.kernels.splat import to_device
 
@@ -104,12 +105,27 @@ def kernel_outputs() -> dict[str, np.ndarray]:
     out["blur_average"] = blur.average([dev(v) for v in views], avg).to_numpy()
     share = dev(np.zeros((37, 45, 3)))
     out["blur_spread"] = blur.spread(dev(pred), 4, share).to_numpy()
-    params, grads = {"x": dev(rng.normal(size=(300, 3)))}, {"x": dev(np.zeros((300, 3)))}
-    opt = Adam(params, grads, {"x": 0.01})
+    out["clipped_mse"] = np.array([losses.clipped_mse(dev(1.2 * pred - 0.1), dev(target))])
+    M = np.hstack([np.eye(3), np.zeros((3, 1))]) + 0.05 * rng.normal(size=(3, 4))
+    moved, grad_image = dev(np.zeros(pred.shape)), dev(np.zeros(pred.shape))
+    out["affine"] = affine.forward(dev(pred), M, moved).to_numpy()
+    out["d_affine_M"] = affine.backward(dev(pred), M, dev(target - 0.5), grad_image)
+    out["d_affine_image"] = grad_image.to_numpy()
+    means, grad_means = rng.normal(size=(2, 300, 3))
+    grad_means[5] = 0.0
+    pose = np.eye(4)
+    pose[:3, 3] = [0.1, -0.2, -2.0]
+    out["density_stats"] = density_stats.image_plane_gradient(dev(means), dev(grad_means), 300, pose, 40.0)
+    shapes = {"x": (300, 3), "y": (300,), "z": (300, 4, 3)}
+    params = {name: dev(rng.normal(size=shape)) for name, shape in shapes.items()}
+    grads = {name: dev(np.zeros(shape)) for name, shape in shapes.items()}
+    opt = Adam(params, grads, {name: 0.01 for name in shapes})
     for _ in range(3):
-        grads["x"].from_numpy(rng.normal(size=(300, 3)).astype(np.float32))
+        for name, shape in shapes.items():
+            grads[name].from_numpy(rng.normal(size=shape).astype(np.float32))
         opt.step()
-    out["adam"] = params["x"].to_numpy()
+    for name in shapes:
+        out[f"adam_{name}"] = params[name].to_numpy()
     return {f"kernels/{k}": v for k, v in out.items()}
 
 

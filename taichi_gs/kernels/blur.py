@@ -7,19 +7,28 @@ from types import SimpleNamespace
 
 import taichi as ti
 
+from . import runtime
+
 
 @functools.cache
 def _kernels(dt) -> SimpleNamespace:
+    spread = runtime.loop_spread()  # image rows x spread indices (see runtime.loop_spread)
+
     @ti.kernel
-    def scale_add(dst: ti.types.ndarray(dtype=dt), src: ti.types.ndarray(dtype=dt), scale: dt, keep: dt):
-        for I in ti.grouped(dst):
-            dst[I] = keep * dst[I] + scale * src[I]
+    def scale_add(dst: ti.types.ndarray(dtype=dt, ndim=3), src: ti.types.ndarray(dtype=dt, ndim=3), scale: dt,
+                  keep: dt):
+        for i in range(dst.shape[0] * spread):
+            if i % spread == 0:
+                v = i // spread
+                for u in range(dst.shape[1]):
+                    for c in range(dst.shape[2]):
+                        dst[v, u, c] = keep * dst[v, u, c] + scale * src[v, u, c]
 
     return SimpleNamespace(scale_add=scale_add)
 
 
 def average(views: Sequence[ti.Ndarray], out: ti.Ndarray) -> ti.Ndarray:
-    """Write the mean of the k same-shaped images ``views`` into ``out`` and return it."""
+    """Write the mean of the k same-shaped (H, W, C) images ``views`` into ``out`` and return it."""
     if not views:
         raise ValueError("need at least one view to average")
     for i, img in enumerate(views):
@@ -30,6 +39,6 @@ def average(views: Sequence[ti.Ndarray], out: ti.Ndarray) -> ti.Ndarray:
 
 
 def spread(grad_blurred: ti.Ndarray, k: int, out: ti.Ndarray) -> ti.Ndarray:
-    """Gradient of each of the k averaged views: ``out = grad_blurred / k`` (share it across views)."""
+    """Gradient of each of the k averaged (H, W, C) views: ``out = grad_blurred / k`` (share it across views)."""
     _kernels(out.dtype).scale_add(out, grad_blurred, 1.0 / k, 0.0)
     return out

@@ -3,6 +3,7 @@
 Each function returns the loss value (a Python float) and ADDS ``weight * dL/d(input)`` into the
 given gradient ndarray, so several terms can share one gradient buffer before a backward pass.
 - :func:`l1`: mean over pixels and channels of ``|pred - target|`` (H, W, C).
+- :func:`clipped_mse`: mean of ``(clip(pred, 0, 1) - target)^2`` (for PSNR; no gradient).
 - :func:`masked_depth_l1`: mean over pixels with ``target > 0`` of ``|pred - target|`` (H, W).
 - :func:`dssim`: ``1 - mean SSIM`` with an 11x11 Gaussian window (sigma 1.5, zero padding),
   C1 = 0.01^2, C2 = 0.03^2, as 3DGS; gradient w.r.t. ``pred`` only.
@@ -16,6 +17,8 @@ import math
 from types import SimpleNamespace
 
 import taichi as ti
+
+from . import runtime
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -34,18 +37,43 @@ WINDOW = _window()
 @functools.cache
 def _kernels(dt) -> SimpleNamespace:
     fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
+    # Per-pixel passes loop over image rows (n_rows x spread indices, see runtime.loop_spread), then
+    # over columns and channels inside: a flat (v, u, k) index would cost two integer divisions per
+    # element on the CPU backend, more than a loss's arithmetic.
+    spread = runtime.loop_spread()
 
     @ti.kernel
     def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, rows: fnd(1)) -> dt:
         h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
         scale = weight / (h * w * c)
+        for i in range(h * spread):
+            if i % spread == 0:
+                v = i // spread
+                acc = ti.cast(0.0, dt)
+                for u in range(w):
+                    for k in range(c):
+                        diff = pred[v, u, k] - target[v, u, k]
+                        acc += ti.abs(diff)
+                        grad[v, u, k] = grad[v, u, k] + scale * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
+                rows[v] = acc
+        total = ti.cast(0.0, dt)
+        ti.loop_config(serialize=True)
         for v in range(h):
-            acc = ti.cast(0.0, dt)
-            for u, k in ti.ndrange(w, c):
-                diff = pred[v, u, k] - target[v, u, k]
-                acc += ti.abs(diff)
-                grad[v, u, k] = grad[v, u, k] + scale * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
-            rows[v] = acc
+            total += rows[v]
+        return total / (h * w * c)
+
+    @ti.kernel
+    def clipped_mse(pred: fnd(3), target: fnd(3), rows: fnd(1)) -> dt:
+        h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
+        for i in range(h * spread):
+            if i % spread == 0:
+                v = i // spread
+                acc = ti.cast(0.0, dt)
+                for u in range(w):
+                    for k in range(c):
+                        diff = ti.min(ti.max(pred[v, u, k], 0.0), 1.0) - target[v, u, k]
+                        acc += diff * diff
+                rows[v] = acc
         total = ti.cast(0.0, dt)
         ti.loop_config(serialize=True)
         for v in range(h):
@@ -55,15 +83,17 @@ def _kernels(dt) -> SimpleNamespace:
     @ti.kernel
     def masked_depth_l1(pred: fnd(2), target: fnd(2), grad: fnd(2), weight: dt, rows: fnd(2)) -> dt:
         h, w = pred.shape[0], pred.shape[1]
-        for v in range(h):
-            acc = ti.cast(0.0, dt)
-            count = ti.cast(0.0, dt)
-            for u in range(w):
-                if target[v, u] > 0:
-                    acc += ti.abs(pred[v, u] - target[v, u])
-                    count += 1.0
-            rows[v, 0] = acc
-            rows[v, 1] = count
+        for i in range(h * spread):
+            if i % spread == 0:
+                v = i // spread
+                acc = ti.cast(0.0, dt)
+                count = ti.cast(0.0, dt)
+                for u in range(w):
+                    if target[v, u] > 0:
+                        acc += ti.abs(pred[v, u] - target[v, u])
+                        count += 1.0
+                rows[v, 0] = acc
+                rows[v, 1] = count
         total = ti.cast(0.0, dt)
         count = ti.cast(0.0, dt)
         ti.loop_config(serialize=True)
@@ -71,10 +101,13 @@ def _kernels(dt) -> SimpleNamespace:
             total += rows[v, 0]
             count += rows[v, 1]
         count = ti.max(count, 1.0)
-        for v, u in ti.ndrange(h, w):
-            if target[v, u] > 0:
-                diff = pred[v, u] - target[v, u]
-                grad[v, u] = grad[v, u] + weight / count * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
+        for i in range(h * spread):
+            if i % spread == 0:
+                v = i // spread
+                for u in range(w):
+                    if target[v, u] > 0:
+                        diff = pred[v, u] - target[v, u]
+                        grad[v, u] = grad[v, u] + weight / count * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
         return total / count
 
     @ti.func
@@ -100,43 +133,56 @@ def _kernels(dt) -> SimpleNamespace:
     @ti.kernel
     def dssim(
         pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt,
-        stats: fnd(4), moments: fnd(4), partial: fnd(4), rows: fnd(1),
+        moments: fnd(4), partial: fnd(4), blurred_partial: fnd(4), rows: fnd(1), c: ti.template(),
     ) -> dt:
-        h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
-        for v, u, k in ti.ndrange(h, w, c):
-            x, y = pred[v, u, k], target[v, u, k]
-            stats[v, u, k, 0] = x
-            stats[v, u, k, 1] = y
-            stats[v, u, k, 2] = x * x
-            stats[v, u, k, 3] = y * y
-            stats[v, u, k, 4] = x * y
-        for v, u, k in ti.ndrange(h, w, c):
-            m = blur_row(stats, v, u, k, 5, w)
-            for j in ti.static(range(5)):
-                moments[v, u, k, j] = m[j]
+        h, w = pred.shape[0], pred.shape[1]
+        for i in range(h * spread):  # horizontal window sums of x, y, x^2, y^2, xy
+            if i % spread == 0:
+                v = i // spread
+                for u in range(w):
+                    for k in ti.static(range(c)):
+                        m = ti.Vector.zero(dt, 5)
+                        for t in ti.static(range(2 * SSIM_RADIUS + 1)):
+                            col = u + t - SSIM_RADIUS
+                            if 0 <= col < w:
+                                x, y = pred[v, col, k], target[v, col, k]
+                                m += dt(WINDOW[t]) * ti.Vector([x, y, x * x, y * y, x * y], dt=dt)
+                        for j in ti.static(range(5)):
+                            moments[v, u, k, j] = m[j]
         scale = -weight / (h * w * c)
-        for v in range(h):
-            acc = ti.cast(0.0, dt)
-            for u, k in ti.ndrange(w, c):
-                m = blur_col(moments, v, u, k, 5, h)
-                mu1, mu2 = m[0], m[1]
-                s11, s22, s12 = m[2] - mu1 * mu1, m[3] - mu2 * mu2, m[4] - mu1 * mu2
-                a1, a2 = 2 * mu1 * mu2 + dt(SSIM_C1), 2 * s12 + dt(SSIM_C2)
-                b1, b2 = mu1 * mu1 + mu2 * mu2 + dt(SSIM_C1), s11 + s22 + dt(SSIM_C2)
-                ssim = a1 * a2 / (b1 * b2)
-                acc += ssim
-                # dSSIM / d(mu1, E[x^2], E[xy]) scaled by dL/dSSIM
-                partial[v, u, k, 0] = scale * (2 * mu2 * (a2 - a1) / (b1 * b2) - 2 * mu1 * ssim * (1 / b1 - 1 / b2))
-                partial[v, u, k, 1] = scale * (-ssim / b2)
-                partial[v, u, k, 2] = scale * (2 * a1 / (b1 * b2))
-            rows[v] = acc
-        for v, u, k in ti.ndrange(h, w, c):
-            m = blur_row(partial, v, u, k, 3, w)
-            for j in ti.static(range(3)):
-                stats[v, u, k, j] = m[j]
-        for v, u, k in ti.ndrange(h, w, c):
-            m = blur_col(stats, v, u, k, 3, h)
-            grad[v, u, k] = grad[v, u, k] + m[0] + 2 * pred[v, u, k] * m[1] + target[v, u, k] * m[2]
+        for i in range(h * spread):  # vertical window sums, SSIM, and dSSIM/d(mu1, E[x^2], E[xy])
+            if i % spread == 0:
+                v = i // spread
+                acc = ti.cast(0.0, dt)
+                for u in range(w):
+                    for k in ti.static(range(c)):
+                        m = blur_col(moments, v, u, k, 5, h)
+                        mu1, mu2 = m[0], m[1]
+                        s11, s22, s12 = m[2] - mu1 * mu1, m[3] - mu2 * mu2, m[4] - mu1 * mu2
+                        a1, a2 = 2 * mu1 * mu2 + dt(SSIM_C1), 2 * s12 + dt(SSIM_C2)
+                        b1, b2 = mu1 * mu1 + mu2 * mu2 + dt(SSIM_C1), s11 + s22 + dt(SSIM_C2)
+                        ssim = a1 * a2 / (b1 * b2)
+                        acc += ssim
+                        partial[v, u, k, 0] = scale * (2 * mu2 * (a2 - a1) / (b1 * b2)
+                                                       - 2 * mu1 * ssim * (1 / b1 - 1 / b2))
+                        partial[v, u, k, 1] = scale * (-ssim / b2)
+                        partial[v, u, k, 2] = scale * (2 * a1 / (b1 * b2))
+                rows[v] = acc
+        for i in range(h * spread):  # the window is symmetric: the backward blurs the partials again
+            if i % spread == 0:
+                v = i // spread
+                for u in range(w):
+                    for k in ti.static(range(c)):
+                        m = blur_row(partial, v, u, k, 3, w)
+                        for j in ti.static(range(3)):
+                            blurred_partial[v, u, k, j] = m[j]
+        for i in range(h * spread):
+            if i % spread == 0:
+                v = i // spread
+                for u in range(w):
+                    for k in ti.static(range(c)):
+                        m = blur_col(blurred_partial, v, u, k, 3, h)
+                        grad[v, u, k] = grad[v, u, k] + m[0] + 2 * pred[v, u, k] * m[1] + target[v, u, k] * m[2]
         total = ti.cast(0.0, dt)
         ti.loop_config(serialize=True)
         for v in range(h):
@@ -159,9 +205,8 @@ def _kernels(dt) -> SimpleNamespace:
             total += rows[chunk]
         return total
 
-    return SimpleNamespace(
-        l1=l1, masked_depth_l1=masked_depth_l1, dssim=dssim, opacity_binarization=opacity_binarization
-    )
+    return SimpleNamespace(l1=l1, clipped_mse=clipped_mse, masked_depth_l1=masked_depth_l1, dssim=dssim,
+                           opacity_binarization=opacity_binarization)
 
 
 _scratch: dict[tuple, ti.Ndarray] = {}
@@ -186,6 +231,13 @@ def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1
     return float(_kernels(dt).l1(pred, target, grad, weight, _buffer("rows", dt, (pred.shape[0],))))
 
 
+def clipped_mse(pred: ti.Ndarray, target: ti.Ndarray) -> float:
+    """Mean squared error of ``pred`` clipped to [0, 1] against ``target`` ((H, W, C) images), for
+    PSNR; no gradient."""
+    dt = _checked(pred, target, target)
+    return float(_kernels(dt).clipped_mse(pred, target, _buffer("rows", dt, (pred.shape[0],))))
+
+
 def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
     """Mean ``|pred - target|`` over pixels with target > 0 of (H, W) depth maps; adds to ``grad``."""
     dt = _checked(pred, target, grad)
@@ -198,8 +250,8 @@ def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float 
     h, w, c = pred.shape
     return float(
         _kernels(dt).dssim(
-            pred, target, grad, weight, _buffer("stats", dt, (h, w, c, 5)), _buffer("moments", dt, (h, w, c, 5)),
-            _buffer("partial", dt, (h, w, c, 3)), _buffer("rows", dt, (h,)),
+            pred, target, grad, weight, _buffer("moments", dt, (h, w, c, 5)), _buffer("partial", dt, (h, w, c, 3)),
+            _buffer("blurred_partial", dt, (h, w, c, 3)), _buffer("rows", dt, (h,)), c,
         )
     )
 

@@ -201,6 +201,18 @@ def current() -> Backend | None:
     return _backend
 
 
+CPU_LOOP_SPREAD = 64
+
+
+def loop_spread() -> int:
+    """Loop indices per item for a parallel loop over a few hundred items (image rows, tiles).
+
+    Taichi's CPU backend runs a range-for that short on one thread, so such loops iterate over
+    ``spread x items`` indices and work on every spread-th one (64 on the CPU); 1 on GPU backends."""
+    backend = current()
+    return CPU_LOOP_SPREAD if backend is None or backend.arch == "cpu" else 1
+
+
 def require_f64(what: str = "float64 kernels") -> None:
     """Raise :class:`BackendError` when the running backend cannot run float64 kernels."""
     if _backend is not None and not _backend.has_f64:

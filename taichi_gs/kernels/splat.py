@@ -29,7 +29,6 @@ from .tiles import TILE
 
 POSE_CHUNK = 1024
 SCAN_CHUNK = 128
-TILE_SPREAD = 64
 
 
 def np_dtype(dtype) -> type:
@@ -62,10 +61,7 @@ def _kernels(dt) -> SimpleNamespace:
     vec3 = ti.types.vector(3, dt)
     fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
     ind = lambda ndim: ti.types.ndarray(dtype=ti.i32, ndim=ndim)  # noqa: E731
-    on_cpu = runtime.current() is None or runtime.current().arch == "cpu"
-    # Taichi's CPU backend runs a range-for of a few hundred iterations on one thread, so per-tile
-    # loops iterate over TILE_SPREAD x n_tiles indices and work on every TILE_SPREAD-th one.
-    spread = TILE_SPREAD if on_cpu else 1
+    spread = runtime.loop_spread()  # per-tile loops: n_tiles x spread indices (see loop_spread)
 
     # Shapes: N Gaussians, M SH coefficients, S tile slots (one per Gaussian per tile it touches),
     # T tiles, H x W pixels. "out" marks what a kernel writes; "scratch" what it uses and leaves.

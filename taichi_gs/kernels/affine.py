@@ -1,0 +1,88 @@
+"""A frame's affine colour transform on device (see :mod:`taichi_gs.photometric`, whose NumPy
+functions are the reference): ``out = image @ M[:, :3].T + M[:, 3]`` for an (H, W, 3) image and a
+3 x 4 ``M``, and its backward. Stage 3 applies it to every step's k-view average, which stays on
+the device instead of travelling to NumPy and back four times."""
+
+import functools
+from types import SimpleNamespace
+
+import numpy as np
+import taichi as ti
+
+from . import runtime
+
+N_GRAD_M = 12  # dL/dM, row-major, accumulated per image row
+
+
+@functools.cache
+def _kernels(dt) -> SimpleNamespace:
+    img = ti.types.ndarray(dtype=dt, ndim=3)
+    mat34 = ti.types.matrix(3, 4, dt)
+    spread = runtime.loop_spread()  # image rows x spread indices (see runtime.loop_spread)
+
+    @ti.kernel
+    def forward_kernel(image: img, M: mat34, out: img):
+        for i in range(image.shape[0] * spread):
+            if i % spread == 0:
+                v = i // spread
+                for u in range(image.shape[1]):
+                    for c in ti.static(range(3)):
+                        acc = M[c, 3]
+                        for j in ti.static(range(3)):
+                            acc += M[c, j] * image[v, u, j]
+                        out[v, u, c] = acc
+
+    @ti.kernel
+    def backward_kernel(image: img, M: mat34, grad_out: img, grad_image: img,
+                        rows: ti.types.ndarray(dtype=dt, ndim=2)):
+        for i in range(image.shape[0] * spread):
+            if i % spread == 0:
+                v = i // spread
+                acc = ti.Vector.zero(dt, N_GRAD_M)
+                for u in range(image.shape[1]):
+                    for j in ti.static(range(3)):
+                        g = ti.cast(0.0, dt)
+                        for c in ti.static(range(3)):
+                            g += M[c, j] * grad_out[v, u, c]
+                        grad_image[v, u, j] = g
+                    for c in ti.static(range(3)):
+                        for j in ti.static(range(3)):
+                            acc[4 * c + j] += grad_out[v, u, c] * image[v, u, j]
+                        acc[4 * c + 3] += grad_out[v, u, c]
+                for q in ti.static(range(N_GRAD_M)):
+                    rows[v, q] = acc[q]
+
+    return SimpleNamespace(forward=forward_kernel, backward=backward_kernel)
+
+
+_rows: dict[tuple, ti.Ndarray] = {}
+
+
+def _matrix(M: np.ndarray, dtype):
+    return ti.Matrix(np.asarray(M, dtype=np.float64).tolist(), dt=dtype)
+
+
+def forward(image: ti.Ndarray, M: np.ndarray, out: ti.Ndarray) -> ti.Ndarray:
+    """Write ``image`` (H, W, 3) transformed by the 3 x 4 affine ``M`` into ``out`` and return it."""
+    _check(image, out)
+    _kernels(image.dtype).forward(image, _matrix(M, image.dtype), out)
+    return out
+
+
+def backward(image: ti.Ndarray, M: np.ndarray, grad_out: ti.Ndarray, grad_image: ti.Ndarray) -> np.ndarray:
+    """Given dL/d out of :func:`forward`, overwrite ``grad_image`` with dL/d image and return
+    dL/dM (3 x 4, summed in float64 over the image's rows)."""
+    _check(image, grad_out)
+    _check(image, grad_image)
+    key = (image.dtype, image.shape[0])
+    if key not in _rows:
+        _rows[key] = ti.ndarray(image.dtype, (image.shape[0], N_GRAD_M))
+    rows = _rows[key]
+    _kernels(image.dtype).backward(image, _matrix(M, image.dtype), grad_out, grad_image, rows)
+    return rows.to_numpy().astype(np.float64).sum(axis=0).reshape(3, 4)
+
+
+def _check(image: ti.Ndarray, other: ti.Ndarray) -> None:
+    if tuple(image.shape) != tuple(other.shape) or len(image.shape) != 3 or image.shape[2] != 3:
+        raise ValueError(f"colour transform needs two (H, W, 3) images of one shape, got {image.shape} and "
+                         f"{other.shape}")
