@@ -71,3 +71,22 @@ def test_quaternions_convert_in_batches():
     np.testing.assert_allclose(batch[0], g.so3_exp([0, 0, 0.8]), atol=1e-12)
     np.testing.assert_allclose(batch[1], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(batch[2], np.diag([1.0, -1.0, -1.0]), atol=1e-12)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-4, 0.015, 0.025, 0.3, 2.0])
+def test_se3_jacobians_match_central_differences(angle):
+    """exp(xi + d) = exp(J_l d) exp(xi) = exp(xi) exp(J_r d) to first order, on both sides of the series
+    switch (0.02 rad) and at large angles; J_r is the left Jacobian at -xi. The step is 1e-4: at 1e-6 the
+    differences of se3_log near zero rotation lose ~1e-5 to cancellation in its own Jacobian."""
+    rng = np.random.default_rng(int(angle * 1000) + 1)
+    axis = rng.normal(size=3)
+    xi = np.concatenate([rng.normal(size=3) * 0.4, angle * axis / np.linalg.norm(axis)])
+    h = 1e-4
+    T_inv = np.linalg.inv(g.se3_exp(xi))
+    numeric_right = np.stack([(g.se3_log(T_inv @ g.se3_exp(xi + h * e)) - g.se3_log(T_inv @ g.se3_exp(xi - h * e)))
+                              / (2 * h) for e in np.eye(6)], axis=1)
+    numeric_left = np.stack([(g.se3_log(g.se3_exp(xi + h * e) @ T_inv) - g.se3_log(g.se3_exp(xi - h * e) @ T_inv))
+                             / (2 * h) for e in np.eye(6)], axis=1)
+    np.testing.assert_allclose(g.se3_right_jacobian(xi), numeric_right, atol=1e-7)
+    np.testing.assert_allclose(g.se3_left_jacobian(xi), numeric_left, atol=1e-7)
+    assert np.abs(g.se3_left_jacobian(xi)[:3, 3:]).max() > 0.05  # the Q block is exercised
