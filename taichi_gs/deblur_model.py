@@ -104,7 +104,7 @@ class BlurScene:
             affine.forward(self.blurred, colour, self.compensated)
             self.grad_compensated.fill(0.0)
             predicted, grad_predicted = self.compensated, self.grad_compensated
-        l1 = losses.l1(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim)
+        l1, mse = losses.l1_and_clipped_mse(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim)
         dssim = losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim)
         grad_colour = None
         if colour is not None:
@@ -122,7 +122,6 @@ class BlurScene:
         if rates is not None:
             self.density.observe(self.store, virtual_pose(base, d_start, d_end, taus[mid]), self.K[0, 0])
             self.store.step(vars(rates))
-        mse = losses.clipped_mse(predicted, self.frame)
         return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
                         g_start, g_end, grad_colour)
 

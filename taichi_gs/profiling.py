@@ -190,9 +190,8 @@ def install(profiler: Profiler) -> None:
     _wrap_forward(splat.Rasterizer, profiler)
     for owner, attribute, name in [
         (splat.Rasterizer, "backward", "render backward"),
-        (losses, "l1", "losses (device)"), (losses, "dssim", "losses (device)"),
+        (losses, "l1_and_clipped_mse", "losses (device)"), (losses, "dssim", "losses (device)"),
         (losses, "masked_depth_l1", "losses (device)"), (losses, "opacity_binarization", "losses (device)"),
-        (losses, "clipped_mse", "losses (device)"),
         (affine, "forward", "colour transform (device)"), (affine, "backward", "colour transform (device)"),
         (refine_model, "depth_losses", "losses (host, NumPy)"),
         (blur, "average", "k-view average / spread"), (blur, "spread", "k-view average / spread"),

@@ -63,6 +63,10 @@ def test_l1_value_and_gradient(images) -> None:
     assert value == pytest.approx(np.abs(pred - target).mean(), rel=1e-12)
     want = 0.5 + 2.0 * np.sign(pred - target) / pred.size
     np.testing.assert_allclose(grad.to_numpy(), want, rtol=1e-12)
+    stretched = 1.4 * pred - 0.2  # partly outside [0, 1]: the PSNR's MSE clips the prediction
+    l1, mse = losses.l1_and_clipped_mse(device(stretched), device(target), device(np.zeros(pred.shape)))
+    assert l1 == pytest.approx(np.abs(stretched - target).mean(), rel=1e-12)
+    assert mse == pytest.approx(np.mean((np.clip(stretched, 0, 1) - target) ** 2), rel=1e-12)
 
 
 def test_masked_depth_l1_ignores_invalid_targets() -> None:

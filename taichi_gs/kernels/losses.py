@@ -3,7 +3,7 @@
 Each function returns the loss value (a Python float) and ADDS ``weight * dL/d(input)`` into the
 given gradient ndarray, so several terms can share one gradient buffer before a backward pass.
 - :func:`l1`: mean over pixels and channels of ``|pred - target|`` (H, W, C).
-- :func:`clipped_mse`: mean of ``(clip(pred, 0, 1) - target)^2`` (for PSNR; no gradient).
+- :func:`l1_and_clipped_mse`: the same, and the mean of ``(clip(pred, 0, 1) - target)^2`` (for PSNR).
 - :func:`masked_depth_l1`: mean over pixels with ``target > 0`` of ``|pred - target|`` (H, W).
 - :func:`dssim`: ``1 - mean SSIM`` with an 11x11 Gaussian window (sigma 1.5, zero padding),
   C1 = 0.01^2, C2 = 0.03^2, as 3DGS; gradient w.r.t. ``pred`` only.
@@ -42,43 +42,35 @@ def _kernels(dt) -> SimpleNamespace:
     # element on the CPU backend, more than a loss's arithmetic.
     spread = runtime.loop_spread()
 
+    @ti.func
+    def total_of(rows: ti.template(), n):
+        """rows[0] + ... + rows[n - 1], in order (deterministic)."""
+        total = ti.cast(0.0, dt)
+        ti.loop_config(serialize=True)
+        for v in range(n):
+            total += rows[v]
+        return total
+
     @ti.kernel
-    def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, rows: fnd(1)) -> dt:
+    def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, rows: fnd(1), squared_rows: fnd(1),
+           mse: fnd(1)) -> dt:
         h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
         scale = weight / (h * w * c)
         for i in range(h * spread):
             if i % spread == 0:
                 v = i // spread
-                acc = ti.cast(0.0, dt)
+                acc, squared = ti.cast(0.0, dt), ti.cast(0.0, dt)
                 for u in range(w):
                     for k in range(c):
                         diff = pred[v, u, k] - target[v, u, k]
                         acc += ti.abs(diff)
                         grad[v, u, k] = grad[v, u, k] + scale * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
+                        clipped = ti.min(ti.max(pred[v, u, k], 0.0), 1.0) - target[v, u, k]
+                        squared += clipped * clipped
                 rows[v] = acc
-        total = ti.cast(0.0, dt)
-        ti.loop_config(serialize=True)
-        for v in range(h):
-            total += rows[v]
-        return total / (h * w * c)
-
-    @ti.kernel
-    def clipped_mse(pred: fnd(3), target: fnd(3), rows: fnd(1)) -> dt:
-        h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
-        for i in range(h * spread):
-            if i % spread == 0:
-                v = i // spread
-                acc = ti.cast(0.0, dt)
-                for u in range(w):
-                    for k in range(c):
-                        diff = ti.min(ti.max(pred[v, u, k], 0.0), 1.0) - target[v, u, k]
-                        acc += diff * diff
-                rows[v] = acc
-        total = ti.cast(0.0, dt)
-        ti.loop_config(serialize=True)
-        for v in range(h):
-            total += rows[v]
-        return total / (h * w * c)
+                squared_rows[v] = squared
+        mse[0] = total_of(squared_rows, h) / (h * w * c)
+        return total_of(rows, h) / (h * w * c)
 
     @ti.kernel
     def masked_depth_l1(pred: fnd(2), target: fnd(2), grad: fnd(2), weight: dt, rows: fnd(2)) -> dt:
@@ -183,11 +175,7 @@ def _kernels(dt) -> SimpleNamespace:
                     for k in ti.static(range(c)):
                         m = blur_col(blurred_partial, v, u, k, 3, h)
                         grad[v, u, k] = grad[v, u, k] + m[0] + 2 * pred[v, u, k] * m[1] + target[v, u, k] * m[2]
-        total = ti.cast(0.0, dt)
-        ti.loop_config(serialize=True)
-        for v in range(h):
-            total += rows[v]
-        return 1.0 - total / (h * w * c)
+        return 1.0 - total_of(rows, h) / (h * w * c)
 
     @ti.kernel
     def opacity_binarization(logits: fnd(1), grad: fnd(1), n: ti.i32, weight: dt, rows: fnd(1)) -> dt:
@@ -199,14 +187,9 @@ def _kernels(dt) -> SimpleNamespace:
                 acc += o * o * (1 - o) * (1 - o)
                 grad[i] = grad[i] + weight * 2 * o * (1 - o) * (1 - 2 * o) * o * (1 - o)
             rows[chunk] = acc
-        total = ti.cast(0.0, dt)
-        ti.loop_config(serialize=True)
-        for chunk in range(n_chunks):
-            total += rows[chunk]
-        return total
+        return total_of(rows, n_chunks)
 
-    return SimpleNamespace(l1=l1, clipped_mse=clipped_mse, masked_depth_l1=masked_depth_l1, dssim=dssim,
-                           opacity_binarization=opacity_binarization)
+    return SimpleNamespace(l1=l1, masked_depth_l1=masked_depth_l1, dssim=dssim, opacity_binarization=opacity_binarization)
 
 
 _scratch: dict[tuple, ti.Ndarray] = {}
@@ -227,15 +210,19 @@ def _checked(pred, target, grad):
 
 def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
     """Mean absolute error of (H, W, C) images; adds ``weight * dL/dpred`` to ``grad``."""
+    return l1_and_clipped_mse(pred, target, grad, weight)[0]
+
+
+def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray,
+                       weight: float = 1.0) -> tuple[float, float]:
+    """:func:`l1`, and from the same pass the mean of ``(clip(pred, 0, 1) - target)^2`` (for PSNR; no
+    gradient)."""
     dt = _checked(pred, target, grad)
-    return float(_kernels(dt).l1(pred, target, grad, weight, _buffer("rows", dt, (pred.shape[0],))))
-
-
-def clipped_mse(pred: ti.Ndarray, target: ti.Ndarray) -> float:
-    """Mean squared error of ``pred`` clipped to [0, 1] against ``target`` ((H, W, C) images), for
-    PSNR; no gradient."""
-    dt = _checked(pred, target, target)
-    return float(_kernels(dt).clipped_mse(pred, target, _buffer("rows", dt, (pred.shape[0],))))
+    h = pred.shape[0]
+    mse = _buffer("mse", dt, (1,))
+    value = _kernels(dt).l1(pred, target, grad, weight, _buffer("rows", dt, (h,)), _buffer("squared_rows", dt, (h,)),
+                            mse)
+    return float(value), float(mse[0])
 
 
 def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
