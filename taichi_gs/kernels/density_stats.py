@@ -30,17 +30,16 @@ def _kernels(dt) -> SimpleNamespace:
     return SimpleNamespace(image_plane_gradient=image_plane_gradient)
 
 
-_buffers: dict[tuple, ti.Ndarray] = {}
+_buffers: dict[object, ti.Ndarray] = {}
 
 
 def image_plane_gradient(means: ti.Ndarray, grad_means: ti.Ndarray, n: int, cam_to_world: np.ndarray,
                          focal: float) -> np.ndarray:
     """For the first n Gaussians, ``|dL/dmean| z / focal`` (pixels) as float64 NumPy, with -1 where the
     gradient is exactly 0 (the Gaussian took no part in the step)."""
-    key = (means.dtype, means.shape[0])
-    if key not in _buffers:
-        _buffers[key] = ti.ndarray(means.dtype, (means.shape[0],))
-    out = _buffers[key]
+    out = _buffers.get(means.dtype)
+    if out is None or out.shape[0] < means.shape[0]:  # one buffer per float type, grown with the store
+        out = _buffers[means.dtype] = ti.ndarray(means.dtype, (means.shape[0],))
     cam = np.asarray(cam_to_world, np.float64)
     _kernels(means.dtype).image_plane_gradient(
         means, grad_means, n, ti.Vector(cam[:3, 3].tolist(), dt=means.dtype),

@@ -189,7 +189,8 @@ def _kernels(dt) -> SimpleNamespace:
             rows[chunk] = acc
         return total_of(rows, n_chunks)
 
-    return SimpleNamespace(l1=l1, masked_depth_l1=masked_depth_l1, dssim=dssim, opacity_binarization=opacity_binarization)
+    return SimpleNamespace(l1=l1, masked_depth_l1=masked_depth_l1, dssim=dssim,
+                           opacity_binarization=opacity_binarization)
 
 
 _scratch: dict[tuple, ti.Ndarray] = {}

@@ -79,5 +79,5 @@ class Adam:
             m, v = self.moments[name]
             rows = p.shape[0] if n is None else n
             # lr * m_hat / (sqrt(v_hat) + eps) == (lr sqrt(c2) / c1) * m / (sqrt(v) + eps sqrt(c2))
-            k.adam_step[len(p.shape)](p, self.grads[name], m, v, rows, lr * math.sqrt(c2) / c1, self.beta1, self.beta2,
-                        self.eps * math.sqrt(c2))
+            k.adam_step[len(p.shape)](p, self.grads[name], m, v, rows, lr * math.sqrt(c2) / c1, self.beta1,
+                                      self.beta2, self.eps * math.sqrt(c2))
