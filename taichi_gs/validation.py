@@ -95,6 +95,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "test_fit": _one_of("adam", "rprop"), "lr_test_pose": POSITIVE,
         "iterations_per_view": OPTIONAL_COUNT, "fill_frames": COUNT, "fill_stride": COUNT,
         "coarse_scale": COUNT, "coarse_fraction": FRACTION, "k_min": COUNT,
+        "early_views_fraction": FRACTION, "early_step_scale": _at_least(1.0),
     },
 }
 

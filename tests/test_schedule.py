@@ -30,6 +30,23 @@ def test_views_keep_neighbours_within_the_step_and_the_bounds(span, step, k_min,
         assert span / (k - 2) > step  # and no view more than needed
 
 
+def test_early_views_widen_the_step_only_before_their_share_of_training():
+    from taichi_gs.stages.deblur import DeblurConfig, _views, exposure_px
+
+    config = DeblurConfig(k=7, max_step_px=2.0, adaptive_k=True, k_min=3, early_views_fraction=0.5,
+                          early_step_scale=2.0)
+    d = np.array([[-0.01, 0, 0, 0, 0, 0], [0.01, 0, 0, 0, 0, 0]])  # 0.02 m sideways at 2 m, f = 500: 5 px
+    assert exposure_px(d[0], d[1], 500.0, 2.0) == pytest.approx(5.0)
+    assert _views(d, 500.0, 2.0, config, 0.49) == 3  # 4 px steps: ceil(5 / 4) + 1
+    assert _views(d, 500.0, 2.0, config, 0.5) == 4  # 2 px steps: ceil(5 / 2) + 1
+    assert _views(d, 500.0, 2.0, config) == 4  # the held-out fits pass no fraction: the full rule
+    off = DeblurConfig(k=7, max_step_px=2.0, adaptive_k=True, k_min=3)
+    assert _views(d, 500.0, 2.0, off, 0.0) == 4
+    from taichi_gs.stages.deblur import PRESETS
+
+    assert PRESETS["fast"].early_views_fraction == 0.3 and PRESETS["paper"].early_views_fraction == 0.0
+
+
 def test_window_convergence_needs_two_windows_and_a_small_relative_change():
     assert not window_converged([1.0] * 5, 3, 0.01)
     assert window_converged([1.0, 1.0, 1.0, 1.005, 0.998, 1.0], 3, 0.01)
