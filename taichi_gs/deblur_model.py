@@ -97,13 +97,12 @@ class BlurScene:
         mid = int(np.argmin(np.abs(taus - 0.5)))
         self.frame.from_numpy(np.ascontiguousarray(frame, np.float32))
         views = self._render_exposure(base, d_start, d_end, taus)
-        self.grad_blur.fill(0.0)
         self.grad_depth.fill(0.0)
         predicted, grad_predicted = self.blurred, self.grad_blur
-        if colour is not None:
+        if colour is not None:  # the losses add into grad_compensated; the transform's backward writes grad_blur
             affine.forward(self.blurred, colour, self.compensated)
-            self.grad_compensated.fill(0.0)
             predicted, grad_predicted = self.compensated, self.grad_compensated
+        grad_predicted.fill(0.0)
         l1, mse = losses.l1_and_clipped_mse(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim)
         dssim = losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim)
         grad_colour = None

@@ -149,8 +149,8 @@ def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
     write_refine_outputs(sequence, out, voxel=0.08)
     before = read_splats(out / "refine" / "splats.ply")
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=2, iterations=4, densify_from=1000,
-                                 exposure_from=1000, test_pose_iterations=0, lr_scales=0.0, lr_means=1e-12, lr_means_final=1e-12,
-                                 holdout_every=0, init_max_px=0.6, checkpoint_every=100)
+                                 exposure_from=1000, test_pose_iterations=0, lr_scales=0.0, lr_means=1e-12,
+                                 lr_means_final=1e-12, holdout_every=0, init_max_px=0.6, checkpoint_every=100)
     result = run_deblur(sequence, out, config)
     after = read_splats(out / "deblur" / "splats.ply")
     centres = read_tum(out / "refine" / "trajectory.txt")[1][:, :3, 3]
@@ -171,7 +171,8 @@ def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupt
                    tmp_path / "seq")
     sequence = load_sequence(tmp_path / "seq")
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=40, densify_from=10,
-                                 densify_until=30, densify_every=10, exposure_from=5, test_pose_iterations=2, checkpoint_every=10)
+                                 densify_until=30, densify_every=10, exposure_from=5, test_pose_iterations=2,
+                                 checkpoint_every=10)
     for name in ("whole", "resumed"):
         write_refine_outputs(sequence, tmp_path / name, voxel=0.06)
     whole = run_deblur(sequence, tmp_path / "whole", config)

@@ -237,6 +237,7 @@ def test_graph_edges_take_their_own_odometry_iterations_and_pairs_stay_cached(tm
     run_pose(walk_sequence, tmp_path, PoseConfig())
     iterations = []
     original = pose_stage.rgbd_odometry
+
     def recording(*args, **kwargs):
         iterations.append(kwargs["iterations"] if "iterations" in kwargs else args[6])  # pairs pass it by name
         return original(*args, **kwargs)

@@ -31,7 +31,7 @@ def test_views_keep_neighbours_within_the_step_and_the_bounds(span, step, k_min,
 
 
 def test_early_views_widen_the_step_only_before_their_share_of_training():
-    from taichi_gs.stages.deblur import DeblurConfig, _views, exposure_px
+    from taichi_gs.stages.deblur import PRESETS, DeblurConfig, _views, exposure_px
 
     config = DeblurConfig(k=7, max_step_px=2.0, adaptive_k=True, k_min=3, early_views_fraction=0.5,
                           early_step_scale=2.0)
@@ -42,8 +42,6 @@ def test_early_views_widen_the_step_only_before_their_share_of_training():
     assert _views(d, 500.0, 2.0, config) == 4  # the held-out fits pass no fraction: the full rule
     off = DeblurConfig(k=7, max_step_px=2.0, adaptive_k=True, k_min=3)
     assert _views(d, 500.0, 2.0, off, 0.0) == 4
-    from taichi_gs.stages.deblur import PRESETS
-
     assert PRESETS["fast"].early_views_fraction == 0.3 and PRESETS["paper"].early_views_fraction == 0.0
 
 
@@ -123,9 +121,11 @@ def test_coarse_to_fine_with_k_per_exposure_deblurs_held_out_views_at_full_size(
     sequence = load_sequence(tmp_path / "seq")
     out = tmp_path / "out"
     write_refine_outputs(sequence, out, voxel=0.05)
+    # early_views_fraction off: the fewer views asserted below must come from the coarse phase alone
     config = dataclasses.replace(deblur.PRESETS["fast"], iterations_per_view=0, k=7, iterations=200, densify_from=100,
-                                 densify_until=150, exposure_from=60, test_pose_iterations=10, checkpoint_every=100, coarse_scale=2,
-                                 coarse_fraction=0.5, adaptive_k=True, k_min=3)
+                                 densify_until=150, exposure_from=60, test_pose_iterations=10, checkpoint_every=100,
+                                 coarse_scale=2, coarse_fraction=0.5, adaptive_k=True, k_min=3,
+                                 early_views_fraction=0.0)
     ks: list[int] = []
     original = deblur.BlurScene.step
 

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import runtime
+from . import runtime, scan
 
 N_GRAD_M = 12  # dL/dM, row-major, accumulated per image row
 
@@ -55,7 +55,7 @@ def _kernels(dt) -> SimpleNamespace:
     return SimpleNamespace(forward=forward_kernel, backward=backward_kernel)
 
 
-_rows: dict[tuple, ti.Ndarray] = {}
+_scratch = scan.Scratch()
 
 
 def _matrix(M: np.ndarray, dtype):
@@ -74,12 +74,10 @@ def backward(image: ti.Ndarray, M: np.ndarray, grad_out: ti.Ndarray, grad_image:
     dL/dM (3 x 4, summed in float64 over the image's rows)."""
     _check(image, grad_out)
     _check(image, grad_image)
-    key = (image.dtype, image.shape[0])
-    if key not in _rows:
-        _rows[key] = ti.ndarray(image.dtype, (image.shape[0], N_GRAD_M))
-    rows = _rows[key]
+    height = image.shape[0]
+    rows = _scratch.get(f"affine rows {image.dtype}", height, image.dtype, (N_GRAD_M,))
     _kernels(image.dtype).backward(image, _matrix(M, image.dtype), grad_out, grad_image, rows)
-    return rows.to_numpy().astype(np.float64).sum(axis=0).reshape(3, 4)
+    return rows.to_numpy()[:height].astype(np.float64).sum(axis=0).reshape(3, 4)
 
 
 def _check(image: ti.Ndarray, other: ti.Ndarray) -> None:

@@ -8,6 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
+from . import scan
+
 NOT_SEEN = -1.0  # a Gaussian whose positional gradient is exactly 0 this step
 
 
@@ -30,16 +32,14 @@ def _kernels(dt) -> SimpleNamespace:
     return SimpleNamespace(image_plane_gradient=image_plane_gradient)
 
 
-_buffers: dict[object, ti.Ndarray] = {}
+_scratch = scan.Scratch()
 
 
 def image_plane_gradient(means: ti.Ndarray, grad_means: ti.Ndarray, n: int, cam_to_world: np.ndarray,
                          focal: float) -> np.ndarray:
     """For the first n Gaussians, ``|dL/dmean| z / focal`` (pixels) as float64 NumPy, with -1 where the
     gradient is exactly 0 (the Gaussian took no part in the step)."""
-    out = _buffers.get(means.dtype)
-    if out is None or out.shape[0] < means.shape[0]:  # one buffer per float type, grown with the store
-        out = _buffers[means.dtype] = ti.ndarray(means.dtype, (means.shape[0],))
+    out = _scratch.get(f"image-plane gradient {means.dtype}", n, means.dtype)
     cam = np.asarray(cam_to_world, np.float64)
     _kernels(means.dtype).image_plane_gradient(
         means, grad_means, n, ti.Vector(cam[:3, 3].tolist(), dt=means.dtype),

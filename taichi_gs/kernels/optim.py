@@ -9,9 +9,6 @@ import taichi as ti
 
 @functools.cache
 def _kernels(dt) -> SimpleNamespace:
-    """Adam kernels for (N,), (N, C) and (N, A, B) parameters: one loop over the N rows with the rest
-    inside (a flat index over every element would cost integer divisions per element on the CPU)."""
-
     @ti.func
     def update(param: ti.template(), grad: ti.template(), m: ti.template(), v: ti.template(), index, lr_t, beta1,
                beta2, eps_t):
@@ -20,31 +17,24 @@ def _kernels(dt) -> SimpleNamespace:
         v[index] = beta2 * v[index] + (1 - beta2) * g * g
         param[index] = param[index] - lr_t * m[index] / (ti.sqrt(v[index]) + eps_t)
 
-    def arr(ndim):
-        return ti.types.ndarray(dtype=dt, ndim=ndim)
+    arr = ti.types.ndarray(dtype=dt)
 
     @ti.kernel
-    def adam_1d(param: arr(1), grad: arr(1), m: arr(1), v: arr(1), n: ti.i32, lr_t: dt, beta1: dt, beta2: dt,
-                eps_t: dt):
+    def adam_step(param: arr, grad: arr, m: arr, v: arr, n: ti.i32, lr_t: dt, beta1: dt, beta2: dt, eps_t: dt):
+        # one loop over the first n rows with the rest inside, by rank (compiled per rank): a flat index over
+        # every element would cost integer divisions per element on the CPU backend
         for r in range(n):
-            update(param, grad, m, v, r, lr_t, beta1, beta2, eps_t)
+            if ti.static(len(param.shape) == 1):
+                update(param, grad, m, v, r, lr_t, beta1, beta2, eps_t)
+            elif ti.static(len(param.shape) == 2):
+                for c in range(param.shape[1]):
+                    update(param, grad, m, v, (r, c), lr_t, beta1, beta2, eps_t)
+            else:
+                for a in range(param.shape[1]):
+                    for b in range(param.shape[2]):
+                        update(param, grad, m, v, (r, a, b), lr_t, beta1, beta2, eps_t)
 
-    @ti.kernel
-    def adam_2d(param: arr(2), grad: arr(2), m: arr(2), v: arr(2), n: ti.i32, lr_t: dt, beta1: dt, beta2: dt,
-                eps_t: dt):
-        for r in range(n):
-            for c in range(param.shape[1]):
-                update(param, grad, m, v, (r, c), lr_t, beta1, beta2, eps_t)
-
-    @ti.kernel
-    def adam_3d(param: arr(3), grad: arr(3), m: arr(3), v: arr(3), n: ti.i32, lr_t: dt, beta1: dt, beta2: dt,
-                eps_t: dt):
-        for r in range(n):
-            for a in range(param.shape[1]):
-                for b in range(param.shape[2]):
-                    update(param, grad, m, v, (r, a, b), lr_t, beta1, beta2, eps_t)
-
-    return SimpleNamespace(adam_step={1: adam_1d, 2: adam_2d, 3: adam_3d})
+    return SimpleNamespace(adam_step=adam_step)
 
 
 class Adam:
@@ -79,5 +69,5 @@ class Adam:
             m, v = self.moments[name]
             rows = p.shape[0] if n is None else n
             # lr * m_hat / (sqrt(v_hat) + eps) == (lr sqrt(c2) / c1) * m / (sqrt(v) + eps sqrt(c2))
-            k.adam_step[len(p.shape)](p, self.grads[name], m, v, rows, lr * math.sqrt(c2) / c1, self.beta1,
-                                      self.beta2, self.eps * math.sqrt(c2))
+            k.adam_step(p, self.grads[name], m, v, rows, lr * math.sqrt(c2) / c1, self.beta1, self.beta2,
+                        self.eps * math.sqrt(c2))
