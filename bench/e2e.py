@@ -3,9 +3,10 @@
     python bench/e2e.py [--frames 30 60 120] [--width 320 --height 240] [--preset fast] [--arch cpu]
 
 For each length: a synthetic hand-held sequence with extreme blur is generated, `taichi-gs
-reconstruct` runs in its own process (so peak memory is that run's alone), then `taichi-gs eval`.
-Prints a Markdown table: seconds per stage, peak resident memory, final ATE, and PSNR/SSIM of the
-held-out views against the sharp ground truth next to the blurred input's own scores.
+reconstruct --profile` runs in its own process (so peak memory is that run's alone), then `taichi-gs
+eval`. Prints a Markdown table: wall seconds, CPU-seconds (user + sys) and cores per stage (from the
+run's profile.json), seconds per frame, peak resident memory, Gaussians after stage 3, final ATE, and
+PSNR/SSIM of the held-out views against the sharp ground truth next to the blurred input's own scores.
 """
 
 from __future__ import annotations
@@ -21,6 +22,9 @@ from pathlib import Path
 from taichi_gs.synth import SynthConfig, generate
 
 
+STAGES = ("pose", "refine", "deblur")
+
+
 def taichi_gs(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "taichi_gs.cli", *args], check=True, stdout=subprocess.DEVNULL)
 
@@ -30,15 +34,18 @@ def run_one(frames: int, width: int, height: int, preset: str, arch: str, work: 
                                seed=0), work / f"seq{frames}")
     out = work / f"run{frames}"
     start = time.perf_counter()
-    taichi_gs("--arch", arch, "reconstruct", str(seq), "--out", str(out), "--preset", preset)
+    taichi_gs("--arch", arch, "reconstruct", str(seq), "--out", str(out), "--preset", preset, "--profile")
     wall = time.perf_counter() - start
     taichi_gs("eval", str(out))
     metrics = json.loads((out / "metrics.json").read_text())
+    profile = json.loads((out / "profile.json").read_text())
     stages = metrics["stages"]
     test = (metrics.get("images") or {}).get("test", {})
     return {
         "frames": frames, "size": f"{width}x{height}", "wall": wall,
-        **{f"{s}_s": stages[s]["seconds"] for s in ("pose", "refine", "deblur")},
+        **{f"{s}_s": stages[s]["seconds"] for s in STAGES},
+        **{f"{s}_cpu": profile[s]["cpu_s"] for s in STAGES},
+        "gaussians": stages["deblur"]["summary"].split(" Gaussians")[0],
         "peak_mb": max(s["peak_rss_mb"] for s in stages.values()),
         "ate_mm": 1000 * metrics["trajectory"]["deblur"]["ate_m"],
         "psnr": test.get("psnr_db", float("nan")), "ssim": test.get("ssim", float("nan")),
@@ -58,14 +65,18 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None, help="keep sequences and runs here")
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_e2e_"))
-    print("| frames | image | pose (s) | refine (s) | deblur (s) | total (s) | peak RSS (MB) | ATE (mm) "
-          "| test PSNR (dB) | test SSIM | blurred PSNR (dB) | blurred SSIM | arch |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| frames | image | pose s (CPU-s, cores) | refine s (CPU-s, cores) | deblur s (CPU-s, cores) | total s "
+          "| s per frame | CPU-s per frame | peak RSS (MB) | Gaussians | ATE (mm) | test PSNR (dB) | test SSIM "
+          "| blurred PSNR (dB) | blurred SSIM | arch |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for frames in args.frames:
         r = run_one(frames, args.width, args.height, args.preset, args.arch, work)
-        print(f"| {r['frames']} | {r['size']} | {r['pose_s']:.0f} | {r['refine_s']:.0f} | {r['deblur_s']:.0f} "
-              f"| {r['wall']:.0f} | {r['peak_mb']:.0f} | {r['ate_mm']:.2f} | {r['psnr']:.2f} | {r['ssim']:.3f} "
-              f"| {r['floor_psnr']:.2f} | {r['floor_ssim']:.3f} | {r['arch']} |", flush=True)
+        per_stage = " | ".join(f"{r[f'{s}_s']:.0f} ({r[f'{s}_cpu']:.0f}, {r[f'{s}_cpu'] / r[f'{s}_s']:.2f})"
+                               for s in STAGES)
+        cpu = sum(r[f"{s}_cpu"] for s in STAGES)
+        print(f"| {r['frames']} | {r['size']} | {per_stage} | {r['wall']:.0f} | {r['wall'] / frames:.1f} "
+              f"| {cpu / frames:.1f} | {r['peak_mb']:.0f} | {r['gaussians']} | {r['ate_mm']:.2f} | {r['psnr']:.2f} "
+              f"| {r['ssim']:.3f} | {r['floor_psnr']:.2f} | {r['floor_ssim']:.3f} | {r['arch']} |", flush=True)
 
 
 if __name__ == "__main__":
