@@ -113,11 +113,7 @@ def _tum_line(t: float, pose: np.ndarray) -> str:
     return f"{t:.6f} " + " ".join(f"{v:.12f}" for v in (*pose[:3, 3], x, y, z, w))
 
 
-TUM_FR1 = {"K": K_of(517.3, 516.5, 318.6, 255.3), "distortion": np.array([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]),
-           # the undistorted frames' crop (left, top, right, bottom exclusive): every pixel inside has a
-           # source pixel in the raw 640x480 image, and its size is a multiple of 4
-           # (test_tum_undistortion_matches_opencv checks both)
-           "crop": (16, 16, 620, 472)}
+TUM_FR1 = {"K": K_of(517.3, 516.5, 318.6, 255.3), "distortion": np.array([0.2624, -0.9531, -0.0054, 0.0026, 1.1633])}
 
 
 def write_tum(folder: Path) -> dict:
@@ -137,11 +133,7 @@ def write_tum(folder: Path) -> dict:
         gt.append(_tum_line(t, pose))
     for name, lines in (("rgb.txt", rgb), ("depth.txt", dep), ("groundtruth.txt", gt)):
         (folder / name).write_text("\n".join(lines) + "\n")
-    left, top, right, bottom = TUM_FR1["crop"]
-    K = TUM_FR1["K"].copy()
-    K[0, 2] -= left
-    K[1, 2] -= top
-    return {"K": K, "size": (right - left, bottom - top), "step": 1 / 5000, "folder": folder}
+    return {"K": TUM_FR1["K"], "size": (640, 480), "step": 1 / 5000, "folder": folder}
 
 
 def write_7scenes(folder: Path, seq: bool = False) -> dict:

@@ -23,8 +23,6 @@ from ..errors import InputError
 if TYPE_CHECKING:
     from .sequence import Intrinsics, Sequence
 
-CROP_MULTIPLE = 4  # undistorted frames are cropped to a multiple of this size
-
 
 class FrameTransform:
     """The identity; subclasses override ``color`` and/or ``depth``."""
@@ -147,11 +145,8 @@ class ResampleColor(FrameTransform):
 
 @dataclasses.dataclass
 class Undistort(FrameTransform):
-    """Lens distortion removed (OpenCV's model, the same focal lengths and principal point), and the
-    result cropped to :meth:`valid_box`: the rectangle whose every pixel has a source pixel. Outside
-    it an undistorted image has only smeared copies of its edge, which no scene explains and which
-    would be trained on and scored. Colour bilinear, depth nearest-neighbour (depth is registered to
-    colour, so it shares the colour camera's distortion). ``width`` x ``height``: the raw frames' size."""
+    """Lens distortion removed (OpenCV's model, same K before and after): colour bilinear, depth
+    nearest-neighbour (depth is registered to colour, so it shares the colour camera's distortion)."""
 
     K: np.ndarray
     distortion: np.ndarray
@@ -159,41 +154,8 @@ class Undistort(FrameTransform):
     height: int
 
     @cached_property
-    def _full_maps(self) -> tuple[np.ndarray, np.ndarray]:
-        return cv2.initUndistortRectifyMap(self.K, self.distortion, None, self.K, (self.width, self.height), cv2.CV_32FC1)
-
-    @cached_property
-    def valid_box(self) -> tuple[int, int, int, int]:
-        """(left, top, right, bottom), right and bottom exclusive: found by cutting, one row or column
-        at a time, the edge with the most pixels whose source lies outside the raw image; then trimmed
-        on the right and bottom to a multiple of 4 pixels, so that ``--scale`` 0.5 and 0.25 average
-        whole pixel blocks."""
-        mx, my = self._full_maps
-        outside = (mx < 0) | (mx > self.width - 1) | (my < 0) | (my > self.height - 1)
-        left, top, right, bottom = 0, 0, self.width, self.height
-        while right - left > 1 and bottom - top > 1:
-            box = outside[top:bottom, left:right]
-            counts = (box[0].sum(), box[-1].sum(), box[:, 0].sum(), box[:, -1].sum())
-            if max(counts) == 0:
-                break
-            edge = int(np.argmax(counts))
-            top, bottom, left, right = (top + (edge == 0), bottom - (edge == 1), left + (edge == 2),
-                                        right - (edge == 3))
-        if right - left >= CROP_MULTIPLE and bottom - top >= CROP_MULTIPLE:
-            right -= (right - left) % CROP_MULTIPLE
-            bottom -= (bottom - top) % CROP_MULTIPLE
-        return left, top, right, bottom
-
-    @cached_property
     def _maps(self) -> tuple[np.ndarray, np.ndarray]:
-        left, top, right, bottom = self.valid_box
-        return tuple(np.ascontiguousarray(m[top:bottom, left:right]) for m in self._full_maps)
-
-    def intrinsics(self, intrinsics: Intrinsics) -> Intrinsics:
-        """``intrinsics`` of the raw frames moved to the cropped, undistorted grid."""
-        left, top, right, bottom = self.valid_box
-        return dataclasses.replace(intrinsics, width=right - left, height=bottom - top, cx=intrinsics.cx - left,
-                                   cy=intrinsics.cy - top)
+        return cv2.initUndistortRectifyMap(self.K, self.distortion, None, self.K, (self.width, self.height), cv2.CV_32FC1)
 
     def _check_raw(self, path: Path, shape: tuple[int, ...]) -> None:
         if shape[:2] != (self.height, self.width):

@@ -3,9 +3,7 @@
 The camera comes from ``--camera fr1|fr2|fr3``, else from intrinsics.json or the --fx/--fy/--cx/--cy
 flags (then no undistortion), else from the folder name (``rgbd_dataset_freiburg1_...``). A built-in
 camera's lens distortion is removed as frames are read: colour bilinearly, depth by nearest
-neighbour (TUM's depth is registered to the colour camera), and the frames are cropped to the pixels
-that have a source (604x456 of fr1's 640x480, 612x456 of fr2's: multiples of 4; the principal point
-moves with the crop). Depth PNGs hold 5000 units per metre.
+neighbour (TUM's depth is registered to the colour camera). Depth PNGs hold 5000 units per metre.
 """
 
 from __future__ import annotations
@@ -60,8 +58,6 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
         distortion = np.array(CAMERAS[camera]["distortion"], dtype=float)
         intr = sequence.intrinsics
         if np.any(distortion != 0):
-            undistort = Undistort(intr.K(), distortion, intr.width, intr.height)
-            sequence.transform = then(sequence.transform, undistort)
-            sequence.intrinsics = undistort.intrinsics(intr)
+            sequence.transform = then(sequence.transform, Undistort(intr.K(), distortion, intr.width, intr.height))
         sequence.source = {**sequence.source, "camera": camera}
     return sequence
