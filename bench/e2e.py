@@ -45,7 +45,7 @@ def run_one(frames: int, width: int, height: int, preset: str, arch: str, work: 
         "frames": frames, "size": f"{width}x{height}", "wall": wall,
         **{f"{s}_s": stages[s]["seconds"] for s in STAGES},
         **{f"{s}_cpu": profile[s]["cpu_s"] for s in STAGES},
-        "gaussians": stages["deblur"]["summary"].split(" Gaussians")[0],
+        "gaussians": json.loads((out / "deblur" / "history.json").read_text())[-1]["gaussians"],
         "peak_mb": max(s["peak_rss_mb"] for s in stages.values()),
         "ate_mm": 1000 * metrics["trajectory"]["deblur"]["ate_m"],
         "psnr": test.get("psnr_db", float("nan")), "ssim": test.get("ssim", float("nan")),
