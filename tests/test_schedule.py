@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from taichi_gs.stages import deblur
 from taichi_gs.stages.schedule import training_scale, views_for_span, window_converged
 
 
@@ -31,18 +32,17 @@ def test_views_keep_neighbours_within_the_step_and_the_bounds(span, step, k_min,
 
 
 def test_early_views_widen_the_step_only_before_their_share_of_training():
-    from taichi_gs.stages.deblur import PRESETS, DeblurConfig, _views, exposure_px
-
-    config = DeblurConfig(k=7, max_step_px=2.0, adaptive_k=True, k_min=3, early_views_fraction=0.5,
-                          early_step_scale=2.0)
+    config = deblur.DeblurConfig(k=7, max_step_px=2.0, adaptive_k=True, k_min=3, early_views_fraction=0.5,
+                                 early_step_scale=2.0)
     d = np.array([[-0.01, 0, 0, 0, 0, 0], [0.01, 0, 0, 0, 0, 0]])  # 0.02 m sideways at 2 m, f = 500: 5 px
-    assert exposure_px(d[0], d[1], 500.0, 2.0) == pytest.approx(5.0)
-    assert _views(d, 500.0, 2.0, config, 0.49) == 3  # 4 px steps: ceil(5 / 4) + 1
-    assert _views(d, 500.0, 2.0, config, 0.5) == 4  # 2 px steps: ceil(5 / 2) + 1
-    assert _views(d, 500.0, 2.0, config) == 4  # the held-out fits pass no fraction: the full rule
-    off = DeblurConfig(k=7, max_step_px=2.0, adaptive_k=True, k_min=3)
-    assert _views(d, 500.0, 2.0, off, 0.0) == 4
-    assert PRESETS["fast"].early_views_fraction == 0.3 and PRESETS["paper"].early_views_fraction == 0.0
+    assert deblur.exposure_px(d[0], d[1], 500.0, 2.0) == pytest.approx(5.0)
+    assert deblur._views(d, 500.0, 2.0, config, 0.49) == 3  # 4 px steps: ceil(5 / 4) + 1
+    assert deblur._views(d, 500.0, 2.0, config, 0.5) == 4  # 2 px steps: ceil(5 / 2) + 1
+    assert deblur._views(d, 500.0, 2.0, config) == 4  # the held-out fits pass no fraction: the full rule
+    off = deblur.DeblurConfig(k=7, max_step_px=2.0, adaptive_k=True, k_min=3)
+    assert deblur._views(d, 500.0, 2.0, off, 0.0) == 4
+    presets = deblur.PRESETS
+    assert presets["fast"].early_views_fraction == 0.3 and presets["paper"].early_views_fraction == 0.0
 
 
 def test_window_convergence_needs_two_windows_and_a_small_relative_change():
@@ -113,7 +113,6 @@ def test_coarse_to_fine_with_k_per_exposure_deblurs_held_out_views_at_full_size(
 
     from taichi_gs.evaluate import psnr
     from taichi_gs.io.sequence import load_sequence
-    from taichi_gs.stages import deblur
 
     synth = pytest.importorskip("taichi_gs.synth")
     synth.generate(synth.SynthConfig(width=96, height=72, frames=9, trajectory="handheld", blur="extreme", seed=1),
