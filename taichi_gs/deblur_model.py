@@ -11,9 +11,10 @@ import numpy as np
 
 from .density import DensityControl
 from .gaussian_store import FIELDS, GaussianStore, morton_order
+from .noreference import eroded
 from .geometry import exposure_pose_gradients, raster_intrinsics, virtual_pose
 from .render import Camera, Rasterizer, affine, blur, losses, to_device
-from .splats import Splats, logit, rgb_to_sh_dc
+from .splats import SH_C0, Splats, logit, rgb_to_sh_dc
 
 TRAINED = FIELDS  # every parameter of a full 3D Gaussian learns in stage 3
 
@@ -41,6 +42,16 @@ class BlurStep:
     grad_colour: np.ndarray | None = None  # (3, 4) when a colour transform was given
 
 
+def loss_pixels(sourced: np.ndarray | None, dtype) -> tuple[losses.PixelWeights | None, losses.PixelWeights | None]:
+    """[ours] The pixels the photometric losses average over: L1 over ``sourced`` (H x W bool, the pixels
+    the camera saw; None: all), D-SSIM over those whose whole 11 x 11 window is sourced (the frame's
+    own edges do not count as unsourced). (None, None) when every pixel is sourced."""
+    if sourced is None or sourced.all():
+        return None, None
+    inner = eroded(sourced, losses.SSIM_RADIUS)
+    return losses.pixel_weights(sourced, dtype), losses.pixel_weights(inner if inner.any() else sourced, dtype)
+
+
 def exposure_taus(k: int) -> np.ndarray:
     """Exposure fractions of the k virtual views: linspace(0, 1, k), or the middle alone for k = 1."""
     return np.linspace(0.0, 1.0, k) if k > 1 else np.array([0.5])
@@ -52,7 +63,8 @@ class BlurScene:
     Gaussians (``store``); ``density`` observes the steps and grows and trims them. ``precision``
     "f64" (CPU/CUDA only) serves the finite-difference tests."""
 
-    def __init__(self, splats: Splats, K: np.ndarray, width: int, height: int, precision: str = "f32"):
+    def __init__(self, splats: Splats, K: np.ndarray, width: int, height: int, precision: str = "f32",
+                 sourced: np.ndarray | None = None):
         self.K = raster_intrinsics(K)
         self.width, self.height = width, height
         self.store = GaussianStore(_as_arrays(splats), TRAINED, precision=precision)
@@ -67,6 +79,8 @@ class BlurScene:
         self.grad_blur = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.grad_view = to_device(np.zeros((height, width, 3), np.float32), dtype)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), dtype)
+        self.sourced = sourced
+        self.l1_pixels, self.ssim_pixels = loss_pixels(sourced, dtype)
 
     @property
     def gaussians(self):
@@ -103,8 +117,9 @@ class BlurScene:
             affine.forward(self.blurred, colour, self.compensated)
             predicted, grad_predicted = self.compensated, self.grad_compensated
         grad_predicted.fill(0.0)
-        l1, mse = losses.l1_and_clipped_mse(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim)
-        dssim = losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim)
+        l1, mse = losses.l1_and_clipped_mse(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim,
+                                            mask=self.l1_pixels)
+        dssim = losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim, mask=self.ssim_pixels)
         grad_colour = None
         if colour is not None:
             grad_colour = affine.backward(self.blurred, colour, self.grad_compensated, self.grad_blur)
@@ -123,6 +138,29 @@ class BlurScene:
             self.store.step(vars(rates))
         return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
                         g_start, g_end, grad_colour)
+
+    def error_mass(self, frame: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int,
+                   colour: np.ndarray | None = None) -> np.ndarray:
+        """[ours] Each Gaussian's share of one frame's re-blur error: sum over pixels of its blending
+        weight in each virtual view times the pixel's absolute error (summed over channels, over the
+        sourced pixels), averaged over the k views. Read from a backward pass whose colour gradient is
+        that error, through the degree-0 colour's gradient (d rgb / d dc = blending weight x SH_C0)."""
+        taus = exposure_taus(k)
+        views = self._render_exposure(base, d_start, d_end, taus)
+        predicted = self.blurred
+        if colour is not None:
+            affine.forward(self.blurred, colour, self.compensated)
+            predicted = self.compensated
+        error = np.abs(predicted.to_numpy() - frame).sum(axis=2)
+        if self.sourced is not None:
+            error = error * self.sourced
+        self.grad_view.from_numpy(np.repeat(error[..., None] / k, 3, axis=2).astype(np.float32))
+        self.gaussians.zero_grad()
+        for view in views:
+            self.rasterizer.backward(self.gaussians, view, d_rgb=self.grad_view)
+        mass = self.gaussians.grads["colors"].to_numpy()[: self.count, 0].sum(axis=1) / (3 * SH_C0)
+        self.gaussians.zero_grad()
+        return np.maximum(mass, 0.0)
 
     def render(self, cam_to_world: np.ndarray, min_alpha: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
         """Sharp colour (H, W, 3) and depth (H, W) at one pose, as NumPy; the depth is the blended z

@@ -74,21 +74,23 @@ class DensityControl:
         self.grad_sum = np.concatenate([self.grad_sum, np.zeros(count)])
         self.grad_count = np.concatenate([self.grad_count, np.zeros(count)])
 
-    def step(self, done: int, store: GaussianStore, schedule: DensitySchedule, rng: np.random.Generator) -> None:
+    def step(self, done: int, store: GaussianStore, schedule: DensitySchedule, rng: np.random.Generator,
+             also: np.ndarray | None = None) -> None:
         """3DGS's schedule after ``done`` iterations: densify and prune every ``densify_every`` in the
-        window; reset opacities every ``reset_opacity_every`` inside it."""
+        window (``also``: rows to grow besides those the gradient picks); reset opacities every
+        ``reset_opacity_every`` inside it."""
         if schedule.densifies(done):
             self.densify_and_prune(store, schedule.grad_threshold_px, schedule.split_limit(store.array("means")),
-                                   schedule.prune_opacity, schedule.prune_scale, schedule.max_gaussians, rng)
+                                   schedule.prune_opacity, schedule.prune_scale, schedule.max_gaussians, rng, also)
         if schedule.reset_opacity_every and done % schedule.reset_opacity_every == 0 and done < schedule.densify_until:
             reset_opacity(store, RESET_OPACITY)
 
     def densify_and_prune(self, store: GaussianStore, grad_threshold_px: float, split_scale: float | np.ndarray,
                           min_opacity: float, max_scale: float, max_gaussians: int,
-                          rng: np.random.Generator) -> tuple[int, int]:
-        """Gaussians whose mean image-plane gradient exceeds ``grad_threshold_px`` are cloned (largest
-        scale <= ``split_scale``: one value or one per Gaussian) or split in two samples of themselves
-        with scales / 1.6; then those
+                          rng: np.random.Generator, also: np.ndarray | None = None) -> tuple[int, int]:
+        """Gaussians whose mean image-plane gradient exceeds ``grad_threshold_px`` (and the rows in
+        ``also``, after them and in their order) are cloned (largest scale <= ``split_scale``: one value or one per
+        Gaussian) or split in two samples of themselves with scales / 1.6; then those
         with opacity < ``min_opacity`` or a scale > ``max_scale`` are dropped. Never grows past
         ``max_gaussians``. Resets the statistics. Returns (added, removed)."""
         mean_grad = self.grad_sum / np.maximum(self.grad_count, 1)
@@ -96,6 +98,9 @@ class DensityControl:
         room = max(max_gaussians - store.count, 0)
         if len(grow) > room:
             grow = grow[np.argsort(-mean_grad[grow])[:room]]
+        if also is not None:  # in the given order of priority, while there is room
+            also = np.asarray(also, np.int64)
+            grow = np.concatenate([grow, also[~np.isin(also, grow)][:max(room - len(grow), 0)]])
         limit = np.broadcast_to(np.asarray(split_scale, np.float64), (store.count,))[grow]
         big = store.array("log_scales")[grow].max(axis=1) > np.log(limit)
         split, clone = grow[big], grow[~big]

@@ -37,15 +37,25 @@ def grey(image: np.ndarray) -> np.ndarray:
     return image if image.ndim == 2 else image[..., :3] @ np.array([0.299, 0.587, 0.114])
 
 
-def gradient_energy(image: np.ndarray, sigma: float = 1.0) -> float:
-    """Mean of |grad|^2 (grey levels per pixel, squared) after a Gaussian of ``sigma`` px."""
+def gradient_energy(image: np.ndarray, sigma: float = 1.0, mask: np.ndarray | None = None) -> float:
+    """Mean of |grad|^2 (grey levels per pixel, squared) after a Gaussian of ``sigma`` px; with a
+    boolean ``mask`` (H, W), only over pixels at least ``BORDER`` px inside it."""
     g = grey(image)
     if sigma > 0:
         g = cv2.GaussianBlur(g, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     gx = cv2.Sobel(g, cv2.CV_64F, 1, 0, ksize=3) / 8.0
     gy = cv2.Sobel(g, cv2.CV_64F, 0, 1, ksize=3) / 8.0
     energy = (gx**2 + gy**2)[BORDER:-BORDER, BORDER:-BORDER]
+    if mask is not None:
+        energy = energy[eroded(mask, BORDER)[BORDER:-BORDER, BORDER:-BORDER]]
     return float(energy.mean()) if energy.size else 0.0
+
+
+def eroded(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``mask`` less every pixel within ``radius`` (square) of a False pixel; the image's own edges
+    do not erode it."""
+    return cv2.erode(mask.astype(np.uint8), np.ones((2 * radius + 1,) * 2, np.uint8),
+                     borderType=cv2.BORDER_CONSTANT, borderValue=1).astype(bool)
 
 
 def laplacian_variance(image: np.ndarray) -> float:
@@ -104,8 +114,7 @@ def masked_ssim(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> f
     """Mean of the SSIM map (evaluate.ssim's window and constants) over the pixels of ``mask`` whose
     whole window lies in ``mask`` (the mask eroded by the window's half-width), so pixels outside it
     (e.g. where a warp has no value) never enter; NaN if none is left."""
-    inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * SSIM_RADIUS + 1,) * 2, np.uint8),
-                      borderType=cv2.BORDER_CONSTANT, borderValue=1).astype(bool)
+    inner = eroded(mask, SSIM_RADIUS)
     if not np.any(inner):
         return float("nan")
     _, full = structural_similarity(
@@ -114,10 +123,12 @@ def masked_ssim(image: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> f
     return float(full.mean(axis=2)[inner].mean())
 
 
-def dark_hole_fraction(render: np.ndarray, reference: np.ndarray, ratio: float = 0.5, min_level: float = 0.1) -> float:
-    """Share of pixels whose grey level in ``render`` is below ``ratio`` times the reference's where the
-    reference is at least ``min_level`` (both smoothed by a 2-px Gaussian): holes and dark smears."""
+def dark_hole_fraction(render: np.ndarray, reference: np.ndarray, ratio: float = 0.5, min_level: float = 0.1,
+                       mask: np.ndarray | None = None) -> float:
+    """Share of pixels (of ``mask``'s, if given) whose grey level in ``render`` is below ``ratio`` times
+    the reference's where the reference is at least ``min_level`` (both smoothed by a 2-px Gaussian):
+    holes and dark smears."""
     r = cv2.GaussianBlur(grey(render), (0, 0), 2.0)
     ref = cv2.GaussianBlur(grey(reference), (0, 0), 2.0)
-    lit = ref >= min_level
-    return float(np.mean((r < ratio * ref) & lit))
+    dark = (r < ratio * ref) & (ref >= min_level)
+    return float(np.mean(dark if mask is None else dark[mask]))

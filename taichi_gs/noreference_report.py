@@ -23,6 +23,9 @@ And for held-out views only:
   better one (PSNR) scored against the held-out frame over the pixels the warp reaches (SSIM: over
   those whose whole 11 x 11 window the warp reaches); ``render_on_warp_mask_psnr_db`` / ``..._ssim``
   score the render over the same pixels.
+Where the reader's transforms leave pixels without a camera source (``Sequence.sourced_pixels``: an
+undistorted frame's border, which OpenCV fills by copying the edge), every figure leaves them out
+(SSIM: pixels whose whole window was seen); the result gives ``sourced_fraction``.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from .evaluate import psnr, ssim
-from .io.sequence import Sequence, read_color
+from .io.sequence import SOURCED, Sequence, read_color
 from .io.trajectory import read_tum
 from .noreference import dark_hole_fraction, gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from .plots import image_grid
@@ -68,6 +71,12 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     train, test = split.get("train", []), split.get("test", [])
     result: dict[str, Any] = {"protocol": protocol_text(split), "holdout": split.get("holdout", "every"),
                               "holdout_every": split.get("holdout_every")}
+    sourced = sequence.sourced_pixels()
+    seen = None if sourced.all() else sourced
+    result["sourced_fraction"] = float(sourced.mean())
+    if seen is not None:
+        result["protocol"] += (f"; every figure over the {100 * sourced.mean():.1f}% of pixels the camera saw (the "
+                               "undistorted frame's border without a source pixel left out)")
     grid_rows, grid_titles = [], []
     for group, frames in (("test", test), ("train", train)):
         scores: dict[str, list[float]] = {}
@@ -76,16 +85,18 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
             frame = sequence.color(i)
             sharp = read_color(deblur / "renders" / "sharp" / f"{name}.png")
             reblurred = read_color(deblur / "renders" / "reblurred" / f"{name}.png")
-            values = {"reblur_psnr_db": psnr(reblurred, frame), "reblur_ssim": ssim(reblurred, frame),
-                      "gradient_energy_ratio": gradient_energy(sharp) / max(gradient_energy(frame), 1e-12),
-                      "dark_hole_fraction": dark_hole_fraction(sharp, frame)}
+            energy = gradient_energy(frame, mask=seen)
+            values = {"reblur_psnr_db": _psnr(reblurred, frame, seen), "reblur_ssim": _ssim(reblurred, frame, seen),
+                      "gradient_energy_ratio": gradient_energy(sharp, mask=seen) / max(energy, 1e-12),
+                      "dark_hole_fraction": dark_hole_fraction(sharp, frame, mask=seen)}
             if sequence.sharp_paths is not None:
-                values["ground_truth_gradient_energy_ratio"] = (gradient_energy(sequence.sharp(i))
-                                                                / max(gradient_energy(frame), 1e-12))
+                values["ground_truth_gradient_energy_ratio"] = (gradient_energy(sequence.sharp(i), mask=seen)
+                                                                / max(energy, 1e-12))
             if group == "test":
-                warped, mask = _best_neighbour_warp(sequence, poses, train, i, frame)
-                values.update({"held_out_psnr_db": psnr(sharp, frame), "held_out_ssim": ssim(sharp, frame),
-                               "sharpest_over_neighbours_gradient_energy_ratio": _over_neighbours(sequence, train, i, frame),
+                warped, mask = _best_neighbour_warp(sequence, poses, train, i, frame, sourced)
+                values.update({"held_out_psnr_db": _psnr(sharp, frame, seen), "held_out_ssim": _ssim(sharp, frame, seen),
+                               "sharpest_over_neighbours_gradient_energy_ratio": _over_neighbours(sequence, train, i,
+                                                                                                  frame, seen),
                                "warped_neighbour_psnr_db": masked_psnr(warped, frame, mask),
                                "warped_neighbour_ssim": masked_ssim(warped, frame, mask),
                                "render_on_warp_mask_psnr_db": masked_psnr(sharp, frame, mask),
@@ -104,27 +115,44 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     return result
 
 
-def _over_neighbours(sequence: Sequence, train: list[int], i: int, frame: np.ndarray) -> float:
+def _psnr(image: np.ndarray, reference: np.ndarray, seen: np.ndarray | None) -> float:
+    """PSNR over the pixels the camera saw (None: the whole frame)."""
+    return psnr(image, reference) if seen is None else masked_psnr(image, reference, seen)
+
+
+def _ssim(image: np.ndarray, reference: np.ndarray, seen: np.ndarray | None) -> float:
+    """SSIM over the pixels whose whole window the camera saw (None: the whole frame)."""
+    return ssim(image, reference) if seen is None else masked_ssim(image, reference, seen)
+
+
+def _over_neighbours(sequence: Sequence, train: list[int], i: int, frame: np.ndarray,
+                     seen: np.ndarray | None) -> float:
     """Gradient energy of ``frame`` (view i) over the mean of its nearest training frames' (before,
-    after); NaN without any."""
+    after), over the pixels the camera saw; NaN without any."""
     before = [j for j in train if j < i]
     after = [j for j in train if j > i]
     near = ([before[-1]] if before else []) + ([after[0]] if after else [])
     if not near:
         return float("nan")
-    return gradient_energy(frame) / max(float(np.mean([gradient_energy(sequence.color(j)) for j in near])), 1e-12)
+    neighbours = np.mean([gradient_energy(sequence.color(j), mask=seen) for j in near])
+    return gradient_energy(frame, mask=seen) / max(float(neighbours), 1e-12)
 
 
-def _best_neighbour_warp(sequence: Sequence, poses: np.ndarray, train: list[int], i: int,
-                         frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _best_neighbour_warp(sequence: Sequence, poses: np.ndarray, train: list[int], i: int, frame: np.ndarray,
+                         sourced: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The nearest training frame before or after ``i`` warped into view i, whichever scores the
-    higher PSNR against ``frame``; (image, mask). An empty mask if there is none."""
+    higher PSNR against ``frame``; (image, mask). The mask keeps pixels the camera saw in both views
+    (``sourced``); it is empty if there is no neighbour."""
     depth, K = sequence.depth(i), sequence.K()
     before = [j for j in train if j < i]
     after = [j for j in train if j > i]
     best = (np.zeros_like(frame), np.zeros(frame.shape[:2], bool), -np.inf)
     for j in ([before[-1]] if before else []) + ([after[0]] if after else []):
         warped, mask = warp_to_view(sequence.color(j), poses[j], depth, poses[i], K)
+        if not sourced.all():
+            seen_there, _ = warp_to_view(np.repeat(sourced[..., None], 3, axis=2).astype(np.float32), poses[j], depth,
+                                         poses[i], K)
+            mask &= sourced & (seen_there[..., 0] >= SOURCED)
         score = masked_psnr(warped, frame, mask)
         if np.isfinite(score) and score > best[2]:
             best = (warped, mask, score)

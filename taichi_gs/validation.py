@@ -96,6 +96,8 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "iterations_per_view": OPTIONAL_COUNT, "fill_frames": COUNT, "fill_stride": COUNT,
         "coarse_scale": COUNT, "coarse_fraction": FRACTION, "k_min": COUNT,
         "early_views_fraction": FRACTION, "early_step_scale": _at_least(1.0),
+        "densify_by": _one_of("gradient", "error", "both"), "error_densify_share": FRACTION,
+        "error_densify_frames": COUNT,
     },
 }
 

@@ -114,6 +114,21 @@ def test_growth_respects_the_cap_largest_gradient_first():
     assert _densify(full, max_gaussians=6) == (0, 2)  # no room: nothing grows, pruning still runs
 
 
+def test_rows_given_by_error_grow_after_the_gradients_in_their_order():
+    model = _model()
+    before = model.arrays()
+    # 0 and 1 grow by gradient; 1 is given again (grows once), then 2 and 5 by error, 2 first
+    added, removed = model.density.densify_and_prune(model.store, THRESHOLD, SPLIT_SCALE, MIN_OPACITY, MAX_SCALE, 9,
+                                                     np.random.default_rng(0), also=np.array([1, 2, 5]))
+    assert (added, removed) == (3, 2)  # room for three: 0, 1 (gradient), then 2; 5 is left out
+    after = model.arrays()
+    # survivors 0, 1 (split: its first half stays in place), 2, 5, then 0's clone, 2's clone, 1's second half
+    np.testing.assert_array_equal(after["means"][4], before["means"][0])
+    np.testing.assert_array_equal(after["means"][5], before["means"][2])
+    assert after["log_scales"][1] == pytest.approx(before["log_scales"][1] - np.log(1.6))
+    assert after["log_scales"][3] == pytest.approx(before["log_scales"][5])  # 5 untouched
+
+
 def test_nothing_above_threshold_only_prunes():
     model = _model(np.zeros(6))
     before = model.arrays()

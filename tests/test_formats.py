@@ -116,6 +116,22 @@ def test_tum_undistortion_matches_opencv(tmp_path):
     assert np.isin(read[read > 0], raw_depth).all()
 
 
+def test_tum_sourced_pixels_are_those_undistortion_reads_from_the_raw_frame(tmp_path):
+    folder, _ = _write("tum", tmp_path)
+    seq = load_sequence(folder)
+    mx, my = cv2.initUndistortRectifyMap(TUM_FR1["K"], TUM_FR1["distortion"], None, TUM_FR1["K"], (640, 480), cv2.CV_32FC1)
+    margin = 0.05  # OpenCV interpolates on a 1/32-pixel grid: samples nearer the edge than that may round
+    inside = (mx >= margin) & (mx <= 639 - margin) & (my >= margin) & (my <= 479 - margin)
+    outside = (mx < -margin) | (mx > 639 + margin) | (my < -margin) | (my > 479 + margin)
+    sourced = seq.sourced_pixels()
+    assert sourced.shape == (480, 640) and 0.9 < sourced.mean() < 1.0
+    assert sourced[inside].all() and not sourced[outside].any()
+    half = load_sequence(folder, scale=0.5).sourced_pixels()  # a pixel counts when its 2 x 2 block does
+    assert half[sourced.reshape(240, 2, 320, 2).all(axis=(1, 3))].all()
+    assert not half[outside.reshape(240, 2, 320, 2).any(axis=(1, 3))].any()
+    assert load_sequence(folder, camera="fr3").sourced_pixels().all()  # no transform: every pixel seen
+
+
 def test_tum_frames_of_another_size_than_the_calibration_are_refused(tmp_path):
     folder, _ = _write("tum", tmp_path)
     seq = load_sequence(folder)

@@ -157,3 +157,62 @@ def test_adam_matches_numpy_reference() -> None:
     after = params["x"].to_numpy()
     np.testing.assert_array_equal(after[3:], before[3:])
     assert np.all(after[:3] != before[:3])
+
+
+def _sourced_mask(shape) -> np.ndarray:
+    mask = np.ones(shape[:2], bool)
+    mask[:3, :] = False  # an unsourced top strip and left corner, as an undistorted frame has
+    mask[:, :2] = False
+    return mask
+
+
+def test_l1_with_a_pixel_mask_averages_over_its_pixels_only(images) -> None:
+    pred, target = images
+    mask = _sourced_mask(pred.shape)
+    weights = losses.pixel_weights(mask, ti.f64)
+    grad = zeros(pred.shape)
+    l1, mse = losses.l1_and_clipped_mse(device(pred), device(target), grad, weight=2.0, mask=weights)
+    assert l1 == pytest.approx(np.abs(pred - target)[mask].mean(), rel=1e-12)
+    assert mse == pytest.approx(np.mean((pred - target)[mask] ** 2), rel=1e-12)
+    want = 2.0 * mask[..., None] * np.sign(pred - target) / (mask.sum() * 3)
+    np.testing.assert_allclose(grad.to_numpy(), want, rtol=1e-12)
+    smeared = target.copy()
+    smeared[~mask] = 0.5  # what lies outside the mask changes nothing
+    assert losses.l1(device(pred), device(smeared), zeros(pred.shape), mask=weights) == pytest.approx(l1, rel=1e-12)
+    every = losses.l1(device(pred), device(target), zeros(pred.shape), mask=losses.pixel_weights(np.ones(mask.shape), ti.f64))
+    assert every == pytest.approx(np.abs(pred - target).mean(), rel=1e-12)
+
+
+def test_dssim_with_a_pixel_mask_matches_finite_differences(images) -> None:
+    pred, target = images
+    target = 0.6 * pred + 0.4 * target
+    mask = _sourced_mask(pred.shape)
+    t = np.arange(11) - 5
+    w = np.exp(-(t**2) / (2 * 1.5**2))
+    w /= w.sum()
+
+    def masked_ssim(x):
+        def blur2(a):
+            return correlate1d(correlate1d(a, w, axis=0, mode="constant"), w, axis=1, mode="constant")
+        mu1, mu2 = blur2(x), blur2(target)
+        s11, s22, s12 = blur2(x * x) - mu1**2, blur2(target * target) - mu2**2, blur2(x * target) - mu1 * mu2
+        c1, c2 = 0.01**2, 0.03**2
+        ssim = (2 * mu1 * mu2 + c1) * (2 * s12 + c2) / ((mu1**2 + mu2**2 + c1) * (s11 + s22 + c2))
+        return float(ssim[mask].mean())
+
+    grad = zeros(pred.shape)
+    value = losses.dssim(device(pred), device(target), grad, weight=0.7, mask=losses.pixel_weights(mask, ti.f64))
+    assert value == pytest.approx(1 - masked_ssim(pred), rel=1e-10)
+    rng = np.random.default_rng(4)
+    indices = [tuple(rng.integers(0, s) for s in pred.shape) for _ in range(25)] + [(0, 0, 0), (1, 4, 2), (12, 16, 2)]
+    numeric = 0.7 * fd_gradient(lambda x: 1 - masked_ssim(x), pred, indices)
+    analytic = np.array([grad.to_numpy()[i] for i in indices])
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-9)
+
+
+def test_a_pixel_mask_must_fit_the_image(images) -> None:
+    pred, target = images
+    with pytest.raises(ValueError, match="does not fit"):
+        losses.l1(device(pred), device(target), zeros(pred.shape), mask=losses.pixel_weights(np.ones((4, 4)), ti.f64))
+    with pytest.raises(ValueError, match="non-empty"):
+        losses.pixel_weights(np.zeros((13, 17)), ti.f64)

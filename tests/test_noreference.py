@@ -103,6 +103,9 @@ def test_masked_scores_and_dark_holes():
     render = np.full((100, 100, 3), 0.6)
     render[30:70, 30:70] = 0.0
     assert dark_hole_fraction(render, np.full((100, 100, 3), 0.6)) == pytest.approx(0.16, abs=0.01)
+    away = np.ones((100, 100), bool)
+    away[20:80, 20:80] = False  # a mask that leaves the hole out: no dark pixels among its own
+    assert dark_hole_fraction(render, np.full((100, 100, 3), 0.6), mask=away) == 0.0
     assert dark_hole_fraction(np.zeros((20, 20, 3)), np.full((20, 20, 3), 0.05)) == 0.0  # input itself dark
 
 
@@ -139,5 +142,46 @@ def test_protocol_on_a_run_whose_renders_are_the_truth(tmp_path):
                 if j is not None]
         ceiling.append(gradient_energy(sequence.color(i)) / np.mean([gradient_energy(sequence.color(j)) for j in near]))
     assert held["sharpest_over_neighbours_gradient_energy_ratio"] == pytest.approx(np.mean(ceiling), rel=1e-9)
-    assert metrics["train"]["views"] == 4
+    assert metrics["train"]["views"] == 4 and metrics["sourced_fraction"] == 1.0
     assert cv2.imread(str(tmp_path / "run" / "report" / "no_reference_views.png")) is not None
+
+
+def test_protocol_leaves_pixels_without_a_camera_source_out(tmp_path):
+    """A reader transform whose top rows have no source (as an undistorted frame's border): renders
+    that are wrong only there score as if they were right everywhere, and the protocol says so."""
+    synth = pytest.importorskip("taichi_gs.synth")
+    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.transforms import FrameTransform
+    from taichi_gs.noreference_report import no_reference_metrics
+
+    class UnsourcedTop(FrameTransform):
+        def color(self, path, image):
+            return np.concatenate([np.repeat(image[6:7], 6, axis=0), image[6:]])
+
+        def sourced(self, share):
+            return np.concatenate([np.zeros_like(share[:6]), share[6:]])
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    sequence.transform = UnsourcedTop()
+    stage = tmp_path / "run" / "deblur"
+    for i, name in enumerate(sequence.names):
+        for kind, image in (("sharp", sequence.sharp(i)), ("reblurred", sequence.color(i))):
+            wrong_on_top = image.copy()
+            wrong_on_top[:6] = 1.0 - wrong_on_top[:6]
+            write_png(stage / "renders" / kind / f"{name}.png", to_uint8(wrong_on_top))
+    write_tum(stage / "trajectory.txt", sequence.timestamps, sequence.gt_poses)
+    train, test, sharpness = choose_split([sequence.color(i) for i in range(6)], "sharpest", 3)
+    (stage / "split.json").write_text(json.dumps({"train": train, "test": test, "holdout": "sharpest",
+                                                  "holdout_every": 3, "laplacian_variance": sharpness}))
+    metrics = no_reference_metrics(tmp_path / "run", sequence)
+    assert metrics["sourced_fraction"] == pytest.approx(42 / 48) and "camera saw" in metrics["protocol"]
+    held = metrics["test"]
+    assert held["reblur_psnr_db"] > 45 and held["reblur_ssim"] > 0.99
+    assert held["gradient_energy_ratio"] == pytest.approx(held["ground_truth_gradient_energy_ratio"], rel=0.02)
+    seen = np.ones((48, 64), bool)
+    seen[:6] = False
+    expected = np.mean([masked_psnr(sequence.sharp(i), sequence.color(i), seen) for i in test])
+    assert held["held_out_psnr_db"] == pytest.approx(expected, abs=0.05)
+    assert metrics["train"]["reblur_psnr_db"] > 45

@@ -243,3 +243,57 @@ def test_stage3_step_with_a_colour_transform_matches_finite_differences(problem)
             errors[f"colors[{i}, {c}]"] = _fd_error(float(grads["colors"][i, 0, c]), g, scale)
     loss()  # restore
     assert max(errors.values()) < 1e-4, errors
+
+
+def test_a_sourced_mask_leaves_unseen_pixels_out_of_the_step(problem):
+    """With a sourced-pixel mask (an undistorted frame's unsourced border), what the frame holds there
+    changes neither the losses nor any gradient; without the mask it does."""
+    splats, frame, depth = problem
+    sourced = np.ones((HEIGHT, WIDTH), bool)
+    sourced[:4], sourced[:, -6:] = False, False
+    smeared = frame.copy()
+    smeared[~sourced] = np.clip(frame[~sourced] + 0.4, 0, 1)
+
+    def step(image, mask):
+        model = BlurScene(splats, K, WIDTH, HEIGHT, precision="f64", sourced=mask)
+        result = model.step(image, depth, BASE, D_START, D_END, K_VIEWS, LAMBDA_DSSIM, LAMBDA_DEPTH, rates=None)
+        return result, model.gaussians.download(grads=True)
+
+    (masked, grads), (masked_smeared, grads_smeared) = step(frame, sourced), step(smeared, sourced)
+    assert masked.losses == pytest.approx(masked_smeared.losses, rel=1e-12)
+    np.testing.assert_allclose(masked.grad_start, masked_smeared.grad_start, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(masked.grad_end, masked_smeared.grad_end, rtol=1e-10, atol=1e-14)
+    for name in grads:
+        np.testing.assert_allclose(grads[name], grads_smeared[name], rtol=1e-10, atol=1e-14)
+    plain, _ = step(frame, None)
+    plain_smeared, _ = step(smeared, None)
+    assert plain.losses["l1"] != pytest.approx(plain_smeared.losses["l1"], rel=1e-3)
+    assert masked.losses["l1"] != pytest.approx(plain.losses["l1"], rel=1e-3)
+
+
+def test_error_mass_is_each_gaussians_blending_weight_times_the_error(problem):
+    """error_mass(i) = sum over pixels of w_i(p) |e(p)| (k-view mean), the derivative of
+    sum_p |e(p)| rgb(p) (the error held fixed) w.r.t. the Gaussian's colour over SH_C0: checked by
+    differences of renders (the blurred image is linear in the colour)."""
+    from taichi_gs.splats import SH_C0
+
+    splats, frame, _ = problem
+    sourced = np.ones((HEIGHT, WIDTH), bool)
+    sourced[:, :5] = False
+    model = BlurScene(splats, K, WIDTH, HEIGHT, precision="f64", sourced=sourced)
+    mass = model.error_mass(frame, BASE, D_START, D_END, K_VIEWS)
+    error = np.abs(model.render_blurred(BASE, D_START, D_END, K_VIEWS) - frame).sum(axis=2) * sourced
+    assert mass.shape == (len(splats.means),) and (mass >= 0).all() and mass.max() > 0
+    h = 0.05
+    for i in np.argsort(-mass)[:4].tolist() + [int(np.argmin(mass))]:
+        total = 0.0
+        for c in range(3):
+            moved = []
+            for sign in (1, -1):
+                sh = splats.sh.copy()
+                sh[i, 0, c] += sign * h
+                other = BlurScene(Splats(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, sh),
+                                  K, WIDTH, HEIGHT, precision="f64")
+                moved.append((error * other.render_blurred(BASE, D_START, D_END, K_VIEWS)[..., c]).sum())
+            total += (moved[0] - moved[1]) / (2 * h)
+        assert mass[i] == pytest.approx(total / (3 * SH_C0), rel=2e-3, abs=1e-3 * mass.max())

@@ -69,6 +69,9 @@ class IntrinsicsOverride:
         return {k: v for k, v in asdict(self).items() if v is not None}
 
 
+SOURCED = 0.999  # share of a pixel that must come from camera pixels for it to count as seen
+
+
 class Sequence:
     """An RGB-D sequence whose frames are read on demand.
 
@@ -133,6 +136,18 @@ class Sequence:
             depth = self.transform.depth(path, depth)
         self._check_size(path, depth.shape[:2], "depth")
         return depth
+
+    def sourced_pixels(self) -> np.ndarray:
+        """Boolean H x W: the colour pixels made wholly from camera pixels. False only where a transform
+        had no source (e.g. the border of an undistorted frame, which OpenCV fills by replicating the
+        edge); [ours] stage 3's photometric losses and eval's image figures use these pixels only."""
+        h, w = self.intrinsics.height, self.intrinsics.width
+        if self.transform is None or not self.rgb_paths:
+            return np.ones((h, w), bool)
+        raw = read_color(self.rgb_paths[0]).shape[:2]
+        share = self.transform.sourced(np.ones(raw, np.float32))
+        self._check_size(self.rgb_paths[0], share.shape[:2], "colour")
+        return share >= SOURCED
 
     def check_all(self) -> None:
         """Read every frame once, so corrupt files fail now rather than mid-stage."""

@@ -33,6 +33,11 @@ class FrameTransform:
     def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
         return depth
 
+    def sourced(self, share: np.ndarray) -> np.ndarray:
+        """The share of each output colour pixel that comes from camera pixels, given that share
+        (float32 H x W, 1 where seen) on the input grid."""
+        return share
+
 
 @dataclasses.dataclass(frozen=True)
 class Chain(FrameTransform):
@@ -49,6 +54,11 @@ class Chain(FrameTransform):
         for step in self.steps:
             depth = step.depth(path, depth)
         return depth
+
+    def sourced(self, share: np.ndarray) -> np.ndarray:
+        for step in self.steps:
+            share = step.sourced(share)
+        return share
 
 
 def then(first: FrameTransform | None, second: FrameTransform) -> FrameTransform:
@@ -118,6 +128,9 @@ class Resize(FrameTransform):
     def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
         return resize_depth(depth, self.width, self.height)
 
+    def sourced(self, share: np.ndarray) -> np.ndarray:
+        return resize_color(share, self.width, self.height)
+
 
 @dataclasses.dataclass(frozen=True)
 class ResampleColor(FrameTransform):
@@ -131,6 +144,12 @@ class ResampleColor(FrameTransform):
     height: int
 
     def color(self, path: Path, image: np.ndarray) -> np.ndarray:
+        return self._warp(image, cv2.BORDER_REPLICATE)
+
+    def sourced(self, share: np.ndarray) -> np.ndarray:
+        return self._warp(share, cv2.BORDER_CONSTANT)
+
+    def _warp(self, image: np.ndarray, border: int) -> np.ndarray:
         K = self.source_K
         shrink = self.target_K[0, 0] / K[0, 0]
         if shrink < 1.0:
@@ -140,7 +159,7 @@ class ResampleColor(FrameTransform):
             K = scale_matrix(K, nw / w, nh / h)
         source_of_target = (K @ np.linalg.inv(self.target_K))[:2]
         return cv2.warpAffine(image, source_of_target, (self.width, self.height),
-                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=border, borderValue=0)
 
 
 @dataclasses.dataclass
@@ -170,6 +189,9 @@ class Undistort(FrameTransform):
     def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
         self._check_raw(path, depth.shape)
         return cv2.remap(depth, *self._maps, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+    def sourced(self, share: np.ndarray) -> np.ndarray:
+        return cv2.remap(share, *self._maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -3,6 +3,8 @@
 Each function returns the loss value (a Python float) and ADDS ``weight * dL/d(input)`` into the
 given gradient ndarray, so several terms can share one gradient buffer before a backward pass.
 - :func:`l1`: mean over pixels and channels of ``|pred - target|`` (H, W, C).
+  The image losses take an optional :class:`PixelWeights` mask: the mean is then over its pixels
+  (e.g. only pixels the camera saw, not the unsourced border of an undistorted frame).
 - :func:`l1_and_clipped_mse`: the same, and the mean of ``(clip(pred, 0, 1) - target)^2`` (for PSNR).
 - :func:`masked_depth_l1`: mean over pixels with ``target > 0`` of ``|pred - target|`` (H, W).
 - :func:`dssim`: ``1 - mean SSIM`` with an 11x11 Gaussian window (sigma 1.5, zero padding),
@@ -14,8 +16,10 @@ Reductions go row-wise then serially, so values are deterministic.
 
 import functools
 import math
+from dataclasses import dataclass
 from types import SimpleNamespace
 
+import numpy as np
 import taichi as ti
 
 from . import runtime
@@ -52,25 +56,26 @@ def _kernels(dt) -> SimpleNamespace:
         return total
 
     @ti.kernel
-    def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, rows: fnd(1), squared_rows: fnd(1),
-           mse: fnd(1)) -> dt:
+    def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt, rows: fnd(1),
+           squared_rows: fnd(1), mse: fnd(1)) -> dt:
         h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
-        scale = weight / (h * w * c)
+        scale = weight / (total * c)
         for i in range(h * spread):
             if i % spread == 0:
                 v = i // spread
                 acc, squared = ti.cast(0.0, dt), ti.cast(0.0, dt)
                 for u in range(w):
+                    m = mask[v, u]
                     for k in range(c):
                         diff = pred[v, u, k] - target[v, u, k]
-                        acc += ti.abs(diff)
-                        grad[v, u, k] = grad[v, u, k] + scale * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
+                        acc += m * ti.abs(diff)
+                        grad[v, u, k] = grad[v, u, k] + m * scale * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
                         clipped = ti.min(ti.max(pred[v, u, k], 0.0), 1.0) - target[v, u, k]
-                        squared += clipped * clipped
+                        squared += m * clipped * clipped
                 rows[v] = acc
                 squared_rows[v] = squared
-        mse[0] = total_of(squared_rows, h) / (h * w * c)
-        return total_of(rows, h) / (h * w * c)
+        mse[0] = total_of(squared_rows, h) / (total * c)
+        return total_of(rows, h) / (total * c)
 
     @ti.kernel
     def masked_depth_l1(pred: fnd(2), target: fnd(2), grad: fnd(2), weight: dt, rows: fnd(2)) -> dt:
@@ -124,7 +129,7 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.kernel
     def dssim(
-        pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt,
+        pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt,
         moments: fnd(4), partial: fnd(4), blurred_partial: fnd(4), rows: fnd(1), c: ti.template(),
     ) -> dt:
         h, w = pred.shape[0], pred.shape[1]
@@ -141,12 +146,12 @@ def _kernels(dt) -> SimpleNamespace:
                                 m += dt(WINDOW[t]) * ti.Vector([x, y, x * x, y * y, x * y], dt=dt)
                         for j in ti.static(range(5)):
                             moments[v, u, k, j] = m[j]
-        scale = -weight / (h * w * c)
         for i in range(h * spread):  # vertical window sums, SSIM, and dSSIM/d(mu1, E[x^2], E[xy])
             if i % spread == 0:
                 v = i // spread
                 acc = ti.cast(0.0, dt)
                 for u in range(w):
+                    scale = -weight * mask[v, u] / (total * c)
                     for k in ti.static(range(c)):
                         m = blur_col(moments, v, u, k, 5, h)
                         mu1, mu2 = m[0], m[1]
@@ -154,7 +159,7 @@ def _kernels(dt) -> SimpleNamespace:
                         a1, a2 = 2 * mu1 * mu2 + dt(SSIM_C1), 2 * s12 + dt(SSIM_C2)
                         b1, b2 = mu1 * mu1 + mu2 * mu2 + dt(SSIM_C1), s11 + s22 + dt(SSIM_C2)
                         ssim = a1 * a2 / (b1 * b2)
-                        acc += ssim
+                        acc += mask[v, u] * ssim
                         partial[v, u, k, 0] = scale * (2 * mu2 * (a2 - a1) / (b1 * b2)
                                                        - 2 * mu1 * ssim * (1 / b1 - 1 / b2))
                         partial[v, u, k, 1] = scale * (-ssim / b2)
@@ -175,7 +180,7 @@ def _kernels(dt) -> SimpleNamespace:
                     for k in ti.static(range(c)):
                         m = blur_col(blurred_partial, v, u, k, 3, h)
                         grad[v, u, k] = grad[v, u, k] + m[0] + 2 * pred[v, u, k] * m[1] + target[v, u, k] * m[2]
-        return 1.0 - total_of(rows, h) / (h * w * c)
+        return 1.0 - total_of(rows, h) / (total * c)
 
     @ti.kernel
     def opacity_binarization(logits: fnd(1), grad: fnd(1), n: ti.i32, weight: dt, rows: fnd(1)) -> dt:
@@ -209,20 +214,55 @@ def _checked(pred, target, grad):
     return pred.dtype
 
 
-def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
-    """Mean absolute error of (H, W, C) images; adds ``weight * dL/dpred`` to ``grad``."""
-    return l1_and_clipped_mse(pred, target, grad, weight)[0]
+@dataclass(frozen=True)
+class PixelWeights:
+    """Per-pixel weights (H, W) of an image loss on device, and their sum (the loss's normaliser)."""
+
+    weights: ti.Ndarray
+    total: float
 
 
-def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray,
-                       weight: float = 1.0) -> tuple[float, float]:
-    """:func:`l1`, and from the same pass the mean of ``(clip(pred, 0, 1) - target)^2`` (for PSNR; no
-    gradient)."""
+def pixel_weights(mask: np.ndarray, dtype) -> PixelWeights:
+    """:class:`PixelWeights` of a boolean or 0/1 (H, W) mask: the loss averages over its pixels."""
+    mask = np.asarray(mask, np.float64)
+    if mask.ndim != 2 or not np.any(mask > 0):
+        raise ValueError(f"a pixel mask must be a non-empty (H, W) array, got shape {mask.shape}")
+    array = ti.ndarray(dtype, mask.shape)
+    array.from_numpy(mask.astype(np.float32 if dtype == ti.f32 else np.float64))
+    return PixelWeights(array, float(mask.sum()))
+
+
+@functools.cache
+def _every_pixel(dt, h: int, w: int) -> PixelWeights:
+    return pixel_weights(np.ones((h, w)), dt)
+
+
+def _weights_for(pred: ti.Ndarray, mask: PixelWeights | None) -> PixelWeights:
+    h, w = pred.shape[0], pred.shape[1]
+    if mask is None:
+        return _every_pixel(pred.dtype, h, w)
+    if tuple(mask.weights.shape) != (h, w) or mask.weights.dtype != pred.dtype:
+        raise ValueError(f"pixel mask {tuple(mask.weights.shape)} does not fit an image of {h}x{w}")
+    return mask
+
+
+def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
+       mask: PixelWeights | None = None) -> float:
+    """Mean absolute error of (H, W, C) images (over ``mask``'s pixels, weighted; None: all);
+    adds ``weight * dL/dpred`` to ``grad``."""
+    return l1_and_clipped_mse(pred, target, grad, weight, mask)[0]
+
+
+def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
+                       mask: PixelWeights | None = None) -> tuple[float, float]:
+    """:func:`l1`, and from the same pass the mean of ``(clip(pred, 0, 1) - target)^2`` over the same
+    pixels (for PSNR; no gradient)."""
     dt = _checked(pred, target, grad)
     h = pred.shape[0]
+    mask = _weights_for(pred, mask)
     mse = _buffer("mse", dt, (1,))
-    value = _kernels(dt).l1(pred, target, grad, weight, _buffer("rows", dt, (h,)), _buffer("squared_rows", dt, (h,)),
-                            mse)
+    value = _kernels(dt).l1(pred, target, grad, weight, mask.weights, mask.total, _buffer("rows", dt, (h,)),
+                            _buffer("squared_rows", dt, (h,)), mse)
     return float(value), float(mse[0])
 
 
@@ -232,14 +272,18 @@ def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weig
     return float(_kernels(dt).masked_depth_l1(pred, target, grad, weight, _buffer("rows2", dt, (pred.shape[0], 2))))
 
 
-def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
-    """``1 - SSIM`` of (H, W, C) images (3DGS window and constants); adds ``weight * dL/dpred``."""
+def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
+          mask: PixelWeights | None = None) -> float:
+    """``1 - SSIM`` of (H, W, C) images (3DGS window and constants), the SSIM map averaged over
+    ``mask``'s pixels (weighted; None: all); adds ``weight * dL/dpred``."""
     dt = _checked(pred, target, grad)
     h, w, c = pred.shape
+    mask = _weights_for(pred, mask)
     return float(
         _kernels(dt).dssim(
-            pred, target, grad, weight, _buffer("moments", dt, (h, w, c, 5)), _buffer("partial", dt, (h, w, c, 3)),
-            _buffer("blurred_partial", dt, (h, w, c, 3)), _buffer("rows", dt, (h,)), c,
+            pred, target, grad, weight, mask.weights, mask.total, _buffer("moments", dt, (h, w, c, 5)),
+            _buffer("partial", dt, (h, w, c, 3)), _buffer("blurred_partial", dt, (h, w, c, 3)),
+            _buffer("rows", dt, (h,)), c,
         )
     )
 

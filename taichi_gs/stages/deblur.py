@@ -28,7 +28,7 @@ from ..geometry import invert, se3_log, virtual_pose
 from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import read_splats, write_splats
-from ..io.sequence import Sequence
+from ..io.sequence import SOURCED, Sequence
 from ..io.trajectory import format_tum, read_tum, write_tum
 from ..io.images import encode_depth, to_uint8, write_png
 from ..noreference import laplacian_variance, sharpest_holdout
@@ -123,6 +123,16 @@ class DeblurConfig:
     # [ours] keep the Gaussians in Morton order of their centres in memory (at the start and after every
     # densification and fill): the same scene, fewer cache misses in the per-tile work
     spatial_order: bool = False
+    # [ours] photometric losses over the pixels the camera saw only (``Sequence.sourced_pixels``): an
+    # undistorted frame's unsourced border holds copies of its edge that no scene explains
+    sourced_pixels_only: bool = False
+    # [ours] which Gaussians densification grows: "gradient" (3DGS: mean positional gradient above
+    # densify_grad), "error" (the error_densify_share of them that carry the most re-blur error: blending
+    # weight x absolute error, summed over error_densify_frames random training views) or "both" (the
+    # error's after the gradient's)
+    densify_by: str = "gradient"
+    error_densify_share: float = 0.05
+    error_densify_frames: int = 4
 
 
 PRESETS = {
@@ -307,13 +317,28 @@ class _Frames:
     depths: list[np.ndarray]
     median_depth: np.ndarray
     K: np.ndarray
+    sourced: np.ndarray | None = None  # H x W bool: pixels the losses use (None: all)
 
 
-def _load_frames(sequence: Sequence, scale: int) -> _Frames:
+def _load_frames(sequence: Sequence, scale: int, sourced: np.ndarray | None) -> _Frames:
+    """The frames at 1/``scale`` resolution; ``sourced`` (full resolution, or None) is shrunk alike,
+    a pixel kept only if its whole block is sourced."""
     colors = [_downsample_color(sequence.color(i), scale) for i in range(len(sequence))]
     h, w = colors[0].shape[:2]
     depths = [downsample_depth(sequence.depth(i), scale)[:h, :w] for i in range(len(sequence))]
-    return _Frames(colors, depths, np.array([_median_depth(d) for d in depths]), _area_intrinsics(sequence.K(), scale))
+    if sourced is not None:
+        sourced = _downsample_color(sourced.astype(np.float32), scale) >= SOURCED
+    return _Frames(colors, depths, np.array([_median_depth(d) for d in depths]), _area_intrinsics(sequence.K(), scale),
+                   sourced)
+
+
+def loss_mask(sequence: Sequence, config: DeblurConfig) -> np.ndarray | None:
+    """Full-resolution pixels stage 3's photometric losses use: ``Sequence.sourced_pixels`` with
+    ``sourced_pixels_only``, else None (all)."""
+    if not config.sourced_pixels_only:
+        return None
+    sourced = sequence.sourced_pixels()
+    return None if sourced.all() else sourced
 
 
 def _scene_extent(poses: np.ndarray, means: np.ndarray) -> float:
@@ -335,13 +360,14 @@ def run_deblur(
     poses, splats = load_stage2(out_dir, len(sequence))
     stage_dir = out_dir / "deblur"
     stage_dir.mkdir(parents=True, exist_ok=True)
-    frames = _load_frames(sequence, config.resolution_scale)
+    sourced = loss_mask(sequence, config)
+    frames = _load_frames(sequence, config.resolution_scale, sourced)
     train, test, sharpness = choose_split(frames.colors, config.holdout, config.holdout_every)
     config = scaled_schedule(config, len(train))
     height, width = frames.colors[0].shape[:2]
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
-    model = BlurScene(splats, frames.K, width, height)
+    model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced)
     centres = poses[train, :3, 3]
     if config.init_max_px > 0:
         limit = footprint_limit(model.arrays()["means"], centres, frames.K[0, 0], config.init_max_px)
@@ -372,8 +398,9 @@ def run_deblur(
     t0 = time.perf_counter()
     for it in range(first, config.iterations):
         fraction = it / max(config.iterations - 1, 1)
-        frames, model = _phase(sequence, model, phase, training_scale(it, config.iterations, config.resolution_scale,
-                                                                       config.coarse_scale, config.coarse_fraction))
+        scale = training_scale(it, config.iterations, config.resolution_scale, config.coarse_scale,
+                               config.coarse_fraction)
+        frames, model = _phase(sequence, sourced, model, phase, scale)
         frame = training_frame(train, it, rng, config.seed, config.epoch_sampling)
         rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
                       quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
@@ -395,7 +422,10 @@ def run_deblur(
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
         # the density schedule in this phase's pixels (coarse-to-fine changes the training width)
         density = density_schedule(config, extent, model.width, centres, frames.K[0, 0])
-        model.density.step(it + 1, model.store, density, rng)
+        also = None
+        if config.densify_by != "gradient" and density.densifies(it + 1):
+            also = error_rows(model, frames, train, poses, offsets, colours if config.colour_affine else None, config, rng)
+        model.density.step(it + 1, model.store, density, rng, also)
         if config.fill_uncovered and density.densifies(it + 1):
             for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
                 fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
@@ -416,7 +446,7 @@ def run_deblur(
                             {"history": history, "rng": rng.bit_generator.state})
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
-    frames, model = _phase(sequence, model, phase, config.resolution_scale)
+    frames, model = _phase(sequence, sourced, model, phase, config.resolution_scale)
     for frame in test:
         offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
                                                                frame, config)
@@ -442,15 +472,16 @@ def _views(d: np.ndarray, focal: float, depth: float, config: DeblurConfig, frac
     return views_for_span(exposure_px(d[0], d[1], focal, depth), step, config.k_min, config.k)
 
 
-def _phase(sequence: Sequence, model: BlurScene, cache: dict[int, _Frames], scale: int) -> tuple[_Frames, BlurScene]:
+def _phase(sequence: Sequence, sourced: np.ndarray | None, model: BlurScene, cache: dict[int, _Frames],
+           scale: int) -> tuple[_Frames, BlurScene]:
     """[ours] Coarse-to-fine: the frames at resolution divisor ``scale`` (loaded once) and ``model``
     moved to that resolution (the same Gaussians, Adam moments and densification statistics)."""
     if scale not in cache:
-        cache[scale] = _load_frames(sequence, scale)
+        cache[scale] = _load_frames(sequence, scale, sourced)
     frames = cache[scale]
     height, width = frames.colors[0].shape[:2]
     if (model.width, model.height) != (width, height):
-        moved = BlurScene(model.splats(), frames.K, width, height)
+        moved = BlurScene(model.splats(), frames.K, width, height, sourced=frames.sourced)
         moved.load_state(model.state())
         model = moved
     return frames, model
@@ -470,8 +501,8 @@ def nearest_filled(depth: np.ndarray) -> np.ndarray:
 
 def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_to_world: np.ndarray, K: np.ndarray,
                    stride: int, max_gaussians: int, rng: np.random.Generator, radius_px: float | None = None) -> int:
-    """Add Gaussians where the render of a view has alpha < 0.5: one per ``stride`` pixels (a random
-    phase), coloured by the input, at the sensor depth, else the scene's rendered depth (alpha >= 0.5),
+    """Add Gaussians where the render of a view has alpha < 0.5 (among the pixels the camera saw, if the
+    model has a sourced mask): one per ``stride`` pixels (a random phase), coloured by the input, at the sensor depth, else the scene's rendered depth (alpha >= 0.5),
     else the nearest pixel's such depth; radius (sigma) ``radius_px`` pixels' footprint (default: the
     stride). Returns how many."""
     rendered, alpha = model.coverage(cam_to_world)
@@ -479,6 +510,8 @@ def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_t
     grid = np.zeros(alpha.shape, bool)
     oy, ox = rng.integers(stride, size=2)
     grid[oy::stride, ox::stride] = True
+    if model.sourced is not None:
+        grid &= model.sourced
     v, u = np.nonzero((alpha < 0.5) & grid)
     room = max(max_gaussians - model.count, 0)
     if len(v) == 0 or room == 0 or not (known > 0).any():
@@ -493,13 +526,26 @@ def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_t
     return len(v)
 
 
+def error_rows(model: BlurScene, frames: _Frames, train: list[int], poses: np.ndarray, offsets: np.ndarray,
+               colours: np.ndarray | None, config: DeblurConfig, rng: np.random.Generator) -> np.ndarray:
+    """[ours] The ``error_densify_share`` of the Gaussians with the most re-blur error mass
+    (``BlurScene.error_mass``, summed over ``error_densify_frames`` random training views), most first."""
+    mass = np.zeros(model.count)
+    for f in rng.choice(train, size=min(config.error_densify_frames, len(train)), replace=False):
+        k = _views(offsets[f], frames.K[0, 0], frames.median_depth[f], config)
+        mass += model.error_mass(frames.colors[f], poses[f], offsets[f, 0], offsets[f, 1], k,
+                                 None if colours is None else colours[f])
+    ranked = np.argsort(-mass, kind="stable")[: int(config.error_densify_share * model.count)]
+    return ranked[mass[ranked] > 0]
+
+
 def density_schedule(config: DeblurConfig, extent: float, width: int, centres: np.ndarray,
                      focal: float) -> DensitySchedule:
     """The config's density control in the policy's units (pixels, metres); ``centres`` and ``focal``
     (training cameras, this resolution) for ``split_px``."""
     # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
-    return DensitySchedule(config.densify_from, config.densify_until, config.densify_every,
-                           config.densify_grad * 2.0 / width, config.split_scale * extent, config.prune_opacity,
+    threshold = np.inf if config.densify_by == "error" else config.densify_grad * 2.0 / width
+    return DensitySchedule(config.densify_from, config.densify_until, config.densify_every, threshold, config.split_scale * extent, config.prune_opacity,
                            config.prune_scale * extent, config.max_gaussians, config.reset_opacity_every,
                            config.split_px, centres, focal)
 
