@@ -11,8 +11,8 @@ import numpy as np
 
 from .density import DensityControl
 from .gaussian_store import FIELDS, GaussianStore, morton_order
-from .noreference import eroded
 from .geometry import exposure_pose_gradients, raster_intrinsics, virtual_pose
+from .noreference import eroded
 from .render import Camera, Rasterizer, affine, blur, losses, to_device
 from .splats import SH_C0, Splats, logit, rgb_to_sh_dc
 

@@ -89,9 +89,9 @@ class DensityControl:
                           min_opacity: float, max_scale: float, max_gaussians: int,
                           rng: np.random.Generator, also: np.ndarray | None = None) -> tuple[int, int]:
         """Gaussians whose mean image-plane gradient exceeds ``grad_threshold_px`` (and the rows in
-        ``also``, after them and in their order) are cloned (largest scale <= ``split_scale``: one value or one per
-        Gaussian) or split in two samples of themselves with scales / 1.6; then those
-        with opacity < ``min_opacity`` or a scale > ``max_scale`` are dropped. Never grows past
+        ``also``, after them and in their order) are cloned (largest scale <= ``split_scale``: one value
+        or one per Gaussian) or split in two samples of themselves with scales / 1.6; then those with
+        opacity < ``min_opacity`` or a scale > ``max_scale`` are dropped. Never grows past
         ``max_gaussians``. Resets the statistics. Returns (added, removed)."""
         mean_grad = self.grad_sum / np.maximum(self.grad_count, 1)
         grow = np.flatnonzero(mean_grad > grad_threshold_px)

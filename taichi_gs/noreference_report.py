@@ -94,7 +94,8 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
                                                                 / max(energy, 1e-12))
             if group == "test":
                 warped, mask = _best_neighbour_warp(sequence, poses, train, i, frame, sourced)
-                values.update({"held_out_psnr_db": _psnr(sharp, frame, seen), "held_out_ssim": _ssim(sharp, frame, seen),
+                values.update({"held_out_psnr_db": _psnr(sharp, frame, seen),
+                               "held_out_ssim": _ssim(sharp, frame, seen),
                                "sharpest_over_neighbours_gradient_energy_ratio": _over_neighbours(sequence, train, i,
                                                                                                   frame, seen),
                                "warped_neighbour_psnr_db": masked_psnr(warped, frame, mask),

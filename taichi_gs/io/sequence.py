@@ -140,7 +140,8 @@ class Sequence:
     def sourced_pixels(self) -> np.ndarray:
         """Boolean H x W: the colour pixels made wholly from camera pixels. False only where a transform
         had no source (e.g. the border of an undistorted frame, which OpenCV fills by replicating the
-        edge); [ours] stage 3's photometric losses and eval's image figures use these pixels only."""
+        edge). [ours] eval's real-data figures count these pixels only, and so do stage 3's photometric
+        losses with ``[deblur] sourced_pixels_only``."""
         h, w = self.intrinsics.height, self.intrinsics.width
         if self.transform is None or not self.rgb_paths:
             return np.ones((h, w), bool)

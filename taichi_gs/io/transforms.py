@@ -191,7 +191,8 @@ class Undistort(FrameTransform):
         return cv2.remap(depth, *self._maps, interpolation=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     def sourced(self, share: np.ndarray) -> np.ndarray:
-        return cv2.remap(share, *self._maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return cv2.remap(share, *self._maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0)
 
 
 @dataclasses.dataclass(frozen=True)

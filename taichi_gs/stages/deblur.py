@@ -424,7 +424,8 @@ def run_deblur(
         density = density_schedule(config, extent, model.width, centres, frames.K[0, 0])
         also = None
         if config.densify_by != "gradient" and density.densifies(it + 1):
-            also = error_rows(model, frames, train, poses, offsets, colours if config.colour_affine else None, config, rng)
+            also = error_rows(model, frames, train, poses, offsets, colours if config.colour_affine else None,
+                              config, rng)
         model.density.step(it + 1, model.store, density, rng, also)
         if config.fill_uncovered and density.densifies(it + 1):
             for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
@@ -502,9 +503,9 @@ def nearest_filled(depth: np.ndarray) -> np.ndarray:
 def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_to_world: np.ndarray, K: np.ndarray,
                    stride: int, max_gaussians: int, rng: np.random.Generator, radius_px: float | None = None) -> int:
     """Add Gaussians where the render of a view has alpha < 0.5 (among the pixels the camera saw, if the
-    model has a sourced mask): one per ``stride`` pixels (a random phase), coloured by the input, at the sensor depth, else the scene's rendered depth (alpha >= 0.5),
-    else the nearest pixel's such depth; radius (sigma) ``radius_px`` pixels' footprint (default: the
-    stride). Returns how many."""
+    model has a sourced mask): one per ``stride`` pixels (a random phase), coloured by the input, at
+    the sensor depth, else the scene's rendered depth (alpha >= 0.5), else the nearest pixel's such
+    depth; radius (sigma) ``radius_px`` pixels' footprint (default: the stride). Returns how many."""
     rendered, alpha = model.coverage(cam_to_world)
     known = np.where(depth > 0, depth, np.where(alpha >= 0.5, rendered, 0.0))
     grid = np.zeros(alpha.shape, bool)
@@ -545,9 +546,9 @@ def density_schedule(config: DeblurConfig, extent: float, width: int, centres: n
     (training cameras, this resolution) for ``split_px``."""
     # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
     threshold = np.inf if config.densify_by == "error" else config.densify_grad * 2.0 / width
-    return DensitySchedule(config.densify_from, config.densify_until, config.densify_every, threshold, config.split_scale * extent, config.prune_opacity,
-                           config.prune_scale * extent, config.max_gaussians, config.reset_opacity_every,
-                           config.split_px, centres, focal)
+    return DensitySchedule(config.densify_from, config.densify_until, config.densify_every, threshold,
+                           config.split_scale * extent, config.prune_opacity, config.prune_scale * extent,
+                           config.max_gaussians, config.reset_opacity_every, config.split_px, centres, focal)
 
 
 def _colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:
