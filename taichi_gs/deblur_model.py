@@ -45,8 +45,8 @@ class BlurStep:
 def loss_pixels(sourced: np.ndarray | None, dtype) -> tuple[losses.PixelWeights | None, losses.PixelWeights | None]:
     """[ours] The pixels the photometric losses average over: L1 over ``sourced`` (H x W bool, the pixels
     the camera saw; None: all), D-SSIM over those whose whole 11 x 11 window is sourced (the frame's
-    own edges do not count as unsourced). (None, None) when every pixel is sourced."""
-    if sourced is None or sourced.all():
+    own edges do not count as unsourced)."""
+    if sourced is None:
         return None, None
     inner = eroded(sourced, losses.SSIM_RADIUS)
     return losses.pixel_weights(sourced, dtype), losses.pixel_weights(inner if inner.any() else sourced, dtype)

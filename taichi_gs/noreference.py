@@ -81,7 +81,7 @@ def sharpest_holdout(sharpness: np.ndarray | list[float], every: int) -> tuple[l
 
 def warp_to_view(source: np.ndarray, source_pose: np.ndarray, depth: np.ndarray, pose: np.ndarray,
                  K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``source`` (H, W, 3) seen from camera ``pose``: each pixel with depth > 0 in ``depth`` (the
+    """``source`` (H, W, C) seen from camera ``pose``: each pixel with depth > 0 in ``depth`` (the
     target view's, metres) is back-projected, moved into the source camera (4x4 camera-to-world poses,
     OpenCV ``K`` shared by both) and sampled bilinearly. Returns (warped image, valid mask)."""
     h, w = depth.shape

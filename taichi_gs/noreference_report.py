@@ -93,11 +93,11 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
                 values["ground_truth_gradient_energy_ratio"] = (gradient_energy(sequence.sharp(i), mask=seen)
                                                                 / max(energy, 1e-12))
             if group == "test":
-                warped, mask = _best_neighbour_warp(sequence, poses, train, i, frame, sourced)
+                warped, mask = _best_neighbour_warp(sequence, poses, train, i, frame, seen)
                 values.update({"held_out_psnr_db": _psnr(sharp, frame, seen),
                                "held_out_ssim": _ssim(sharp, frame, seen),
                                "sharpest_over_neighbours_gradient_energy_ratio": _over_neighbours(sequence, train, i,
-                                                                                                  frame, seen),
+                                                                                                  energy, seen),
                                "warped_neighbour_psnr_db": masked_psnr(warped, frame, mask),
                                "warped_neighbour_ssim": masked_ssim(warped, frame, mask),
                                "render_on_warp_mask_psnr_db": masked_psnr(sharp, frame, mask),
@@ -126,34 +126,39 @@ def _ssim(image: np.ndarray, reference: np.ndarray, seen: np.ndarray | None) -> 
     return ssim(image, reference) if seen is None else masked_ssim(image, reference, seen)
 
 
-def _over_neighbours(sequence: Sequence, train: list[int], i: int, frame: np.ndarray,
-                     seen: np.ndarray | None) -> float:
-    """Gradient energy of ``frame`` (view i) over the mean of its nearest training frames' (before,
-    after), over the pixels the camera saw; NaN without any."""
+def _nearest_training(train: list[int], i: int) -> list[int]:
+    """The training views nearest to view i: the last before it and the first after it (those that exist)."""
     before = [j for j in train if j < i]
     after = [j for j in train if j > i]
-    near = ([before[-1]] if before else []) + ([after[0]] if after else [])
+    return ([before[-1]] if before else []) + ([after[0]] if after else [])
+
+
+def _over_neighbours(sequence: Sequence, train: list[int], i: int, energy: float, seen: np.ndarray | None) -> float:
+    """``energy`` (view i's gradient energy) over the mean of its nearest training frames', over the
+    pixels the camera saw; NaN without any."""
+    near = _nearest_training(train, i)
     if not near:
         return float("nan")
     neighbours = np.mean([gradient_energy(sequence.color(j), mask=seen) for j in near])
-    return gradient_energy(frame, mask=seen) / max(float(neighbours), 1e-12)
+    return energy / max(float(neighbours), 1e-12)
 
 
 def _best_neighbour_warp(sequence: Sequence, poses: np.ndarray, train: list[int], i: int, frame: np.ndarray,
-                         sourced: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                         seen: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """The nearest training frame before or after ``i`` warped into view i, whichever scores the
-    higher PSNR against ``frame``; (image, mask). The mask keeps pixels the camera saw in both views
-    (``sourced``); it is empty if there is no neighbour."""
+    higher PSNR against ``frame``; (image, mask). With ``seen`` (the pixels the camera saw; None: all)
+    the mask keeps the pixels seen in both views, warped with the colour as a fourth channel; it is
+    empty if there is no neighbour."""
     depth, K = sequence.depth(i), sequence.K()
-    before = [j for j in train if j < i]
-    after = [j for j in train if j > i]
     best = (np.zeros_like(frame), np.zeros(frame.shape[:2], bool), -np.inf)
-    for j in ([before[-1]] if before else []) + ([after[0]] if after else []):
-        warped, mask = warp_to_view(sequence.color(j), poses[j], depth, poses[i], K)
-        if not sourced.all():
-            seen_there, _ = warp_to_view(np.repeat(sourced[..., None], 3, axis=2).astype(np.float32), poses[j], depth,
-                                         poses[i], K)
-            mask &= sourced & (seen_there[..., 0] >= SOURCED)
+    for j in _nearest_training(train, i):
+        source = sequence.color(j)
+        if seen is not None:
+            source = np.dstack([source, seen.astype(np.float32)])
+        warped, mask = warp_to_view(source, poses[j], depth, poses[i], K)
+        if seen is not None:
+            mask &= seen & (warped[..., 3] >= SOURCED)
+            warped = warped[..., :3]
         score = masked_psnr(warped, frame, mask)
         if np.isfinite(score) and score > best[2]:
             best = (warped, mask, score)

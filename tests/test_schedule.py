@@ -56,7 +56,6 @@ def test_window_convergence_needs_two_windows_and_a_small_relative_change():
 def test_moving_the_scene_between_resolutions_keeps_gaussians_and_optimiser_state(tmp_path):
     from taichi_gs.deblur_model import BlurScene
     from taichi_gs.splats import splats_from_points
-    from taichi_gs.stages.deblur import _load_frames, _phase
 
     synth = pytest.importorskip("taichi_gs.synth")
     from taichi_gs.io.sequence import load_sequence
@@ -66,18 +65,18 @@ def test_moving_the_scene_between_resolutions_keeps_gaussians_and_optimiser_stat
     rng = np.random.default_rng(0)
     splats = splats_from_points(rng.uniform(-1, 1, (50, 3)) + [0, 0, 3], rng.uniform(0, 1, (50, 3)), scale=0.05,
                                 opacity=0.5)
-    cache = {1: _load_frames(sequence, 1, None)}
+    cache = {1: deblur._load_frames(sequence, 1, None)}
     model = BlurScene(splats, cache[1].K, 64, 48)
     model.density.grad_sum[:] = rng.uniform(size=model.count)
     before = model.state()
-    frames, coarse = _phase(sequence, None, model, cache, 2)
+    frames, coarse = deblur._phase(sequence, None, model, cache, 2)
     assert (coarse.width, coarse.height) == (32, 24) and frames.colors[0].shape == (24, 32, 3)
     assert frames.K[0, 0] == pytest.approx(cache[1].K[0, 0] / 2)
     for name, value in coarse.state().items():
         np.testing.assert_array_equal(value, before[name])
-    frames, back = _phase(sequence, None, coarse, cache, 1)
+    frames, back = deblur._phase(sequence, None, coarse, cache, 1)
     assert (back.width, back.height) == (64, 48) and frames is cache[1]
-    assert _phase(sequence, None, back, cache, 1)[1] is back
+    assert deblur._phase(sequence, None, back, cache, 1)[1] is back
 
 
 def _poses(shift_m: float, n: int = 3) -> np.ndarray:
