@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from taichi_gs.errors import InputError
-from taichi_gs.io.sequence import IntrinsicsOverride, associate, load_sequence
-from conftest import write_frame_images
+from taichi_gs.io.sequence import IntrinsicsOverride, associate, load_sequence, typical_offsets
+from conftest import write_frame_images, write_intrinsics
 
 
 def test_own_layout_reads_frames_and_ground_truth(own_layout):
@@ -36,6 +36,52 @@ def test_associate_uses_each_stamp_once_closest_first():
     a = np.array([0.0, 0.010, 0.100])
     b = np.array([0.004, 0.012, 0.5])
     assert associate(a, b, 0.02) == [(0, 0), (1, 1)]
+
+
+def half_frame_streams(frames: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Colour at 30 Hz with +-3 ms jitter, depth at 30 Hz 15.5 ms before each colour slot (so also 17.8 ms
+    after the previous one), as Kinect v1 streams in TUM fr1: the closest depth frame flips sides with the jitter."""
+    rng = np.random.default_rng(0)
+    colour = 1000.0 + np.arange(frames) / 30 + rng.uniform(-0.003, 0.003, frames)
+    depth = 1000.0 + np.arange(frames + 1) / 30 - 0.0155
+    return colour, depth
+
+
+def test_pairing_keeps_depth_on_one_side_of_half_frame_offset_streams():
+    colour, depth = half_frame_streams()
+    closest = associate(colour, depth, 0.02)
+    sides = np.sign([depth[j] - colour[i] for i, j in closest])
+    assert (sides < 0).any() and (sides > 0).any()  # plain closest-first pairing flips
+    offsets = typical_offsets(colour, depth, closest)
+    kept = associate(colour, depth, 0.02, offsets)
+    assert [i for i, _ in kept] == list(range(len(colour)))  # every colour frame keeps a depth frame
+    gaps = np.array([depth[j] - colour[i] for i, j in kept])
+    assert np.all(gaps < 0) and np.all(np.abs(gaps) <= 0.02)
+    # consecutive depth frames are now one depth interval apart, as their colour frames are
+    assert np.all(np.diff([j for _, j in kept]) == 1)
+
+
+def test_pairing_of_synchronised_streams_is_unchanged():
+    colour = 1000.0 + np.arange(20) / 30
+    depth = colour + np.random.default_rng(1).uniform(-0.002, 0.002, 20)
+    closest = associate(colour, depth, 0.02)
+    assert associate(colour, depth, 0.02, typical_offsets(colour, depth, closest)) == closest
+
+
+def test_tum_reader_pairs_each_colour_frame_with_the_depth_frame_on_the_common_side(tmp_path):
+    colour, depth = half_frame_streams(12)
+    folder = tmp_path / "tum"
+    rgb_lines, depth_lines = [], []
+    for i in range(len(depth)):
+        rgb, depth_name = write_frame_images(folder, i)
+        depth_lines.append(f"{depth[i]:.6f} {depth_name}")
+        if i < len(colour):
+            rgb_lines.append(f"{colour[i]:.6f} {rgb}")
+    (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    write_intrinsics(folder)
+    seq = load_sequence(folder)
+    assert [p.name for p in seq.depth_paths] == [f"{i:06d}.png" for i in range(len(colour))]
 
 
 def test_cli_flags_override_intrinsics(own_layout):

@@ -305,6 +305,10 @@ def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
     )
 
 
+# Closest-first matches around a frame whose median offset says which side its depth frame should be on.
+OFFSET_WINDOW = 31
+
+
 def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: float) -> Sequence:
     rgb_list, depth_list = root / "rgb.txt", root / "depth.txt"
     for path in (rgb_list, depth_list):
@@ -317,6 +321,8 @@ def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: f
     _check_increasing(rgb_list, rgb_times)
     _check_increasing(depth_list, depth_times)
     matches = associate(rgb_times, depth_times, max_difference)
+    if matches:
+        matches = associate(rgb_times, depth_times, max_difference, typical_offsets(rgb_times, depth_times, matches))
     if not matches:
         raise InputError(rgb_list, f"no colour frame has a depth frame within {max_difference} s",
                          "check that rgb.txt and depth.txt share a clock, or raise --time-tolerance (seconds)")
@@ -328,16 +334,20 @@ def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: f
                     gt_poses=_ground_truth(root / "groundtruth.txt", timestamps))
 
 
-def associate(first: np.ndarray, second: np.ndarray, max_difference: float) -> list[tuple[int, int]]:
-    """Pair timestamps as TUM's associate.py does: closest pairs first, each stamp used once.
+def associate(first: np.ndarray, second: np.ndarray, max_difference: float,
+              offsets: np.ndarray | None = None) -> list[tuple[int, int]]:
+    """Pair timestamps as TUM's associate.py does: closest pairs first, each stamp used once, at most
+    ``max_difference`` apart. With ``offsets`` (one per first stamp), "closest" means closest to
+    ``first + offsets``.
 
     Returns (index in first, index in second) pairs sorted by the first stamp.
     """
+    shifted = first if offsets is None else first + offsets
     candidates = []
     for i, a in enumerate(first):
         lo = np.searchsorted(second, a - max_difference, side="left")
         hi = np.searchsorted(second, a + max_difference, side="right")
-        candidates.extend((abs(a - second[j]), i, j) for j in range(lo, hi))
+        candidates.extend((abs(shifted[i] - second[j]), i, j) for j in range(lo, hi))
     candidates.sort()
     used_first, used_second, matches = set(), set(), []
     for _, i, j in candidates:
@@ -346,6 +356,23 @@ def associate(first: np.ndarray, second: np.ndarray, max_difference: float) -> l
             used_second.add(j)
             matches.append((i, j))
     return sorted(matches)
+
+
+def typical_offsets(first: np.ndarray, second: np.ndarray, matches: list[tuple[int, int]],
+                    window: int = OFFSET_WINDOW) -> np.ndarray:
+    """[ours] Per first stamp, the median of ``second - first`` over the ``window`` closest-first ``matches``
+    around it: the two streams' local phase offset (it drifts along a recording).
+
+    Pairing again closest to it keeps each depth frame on one side of its colour frame. Kinect v1 streams in
+    TUM fr1 run at one rate about half a frame apart (depth ~15 ms before and ~15 ms after each colour frame),
+    so closest-first pairing flips between the frame before and the frame after; consecutive depth frames are
+    then 0.5-2x the colour frames' interval apart, and motion measured on depth is off by as much.
+    Synchronised streams have offsets near 0 and keep their pairs.
+    """
+    offsets = np.array([second[j] - first[i] for i, j in matches])
+    at = np.minimum(np.searchsorted([i for i, _ in matches], np.arange(len(first))), len(matches) - 1)
+    half = window // 2
+    return np.array([np.median(offsets[max(0, k - half): k + half + 1]) for k in at])
 
 
 def _read_text(path: Path) -> str:
