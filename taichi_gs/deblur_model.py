@@ -11,9 +11,9 @@ import numpy as np
 
 from .density import DensityControl
 from .gaussian_store import FIELDS, GaussianStore, morton_order
-from .geometry import exposure_pose_gradients, raster_intrinsics, virtual_pose
+from .geometry import exposure_pose_gradients, invert, raster_intrinsics, relative_pose_gradients, virtual_pose
 from .noreference import eroded
-from .render import Camera, Rasterizer, affine, blur, losses, to_device
+from .render import Camera, Rasterizer, affine, blur, losses, to_device, warp
 from .splats import SH_C0, Splats, logit, rgb_to_sh_dc
 
 TRAINED = FIELDS  # every parameter of a full 3D Gaussian learns in stage 3
@@ -57,6 +57,15 @@ def exposure_taus(k: int) -> np.ndarray:
     return np.linspace(0.0, 1.0, k) if k > 1 else np.array([0.5])
 
 
+def anchor_groups(k: int, anchors: int) -> list[np.ndarray]:
+    """[ours] The k virtual views split into ``anchors`` (1..k) runs of neighbours, each warped from one
+    anchor render at the mean exposure fraction of its run."""
+    return np.array_split(np.arange(k), min(max(anchors, 1), k))
+
+
+ANCHOR_VIEWS = 1000  # rasterizer view buffers of the padded anchor renders (apart from the k full renders')
+
+
 class BlurScene:
     """Gaussians rendered at one resolution (``K`` in OpenCV convention; the rasterizer's half-pixel
     shift is applied here). :meth:`step` takes one blurred frame's k-view loss and updates the
@@ -64,8 +73,9 @@ class BlurScene:
     "f64" (CPU/CUDA only) serves the finite-difference tests."""
 
     def __init__(self, splats: Splats, K: np.ndarray, width: int, height: int, precision: str = "f32",
-                 sourced: np.ndarray | None = None):
+                 sourced: np.ndarray | None = None, warp_margin: int = 0):
         self.K = raster_intrinsics(K)
+        self.warp_margin = warp_margin  # [ours] pixels added on each side of the anchor renders of warped steps
         self.width, self.height = width, height
         self.store = GaussianStore(_as_arrays(splats), TRAINED, precision=precision)
         self.rasterizer = Rasterizer(self.store.dtype)
@@ -81,6 +91,11 @@ class BlurScene:
         self.grad_depth = to_device(np.zeros((height, width), np.float32), dtype)
         self.sourced = sourced
         self.l1_pixels, self.ssim_pixels = loss_pixels(sourced, dtype)
+        padded = (height + 2 * warp_margin, width + 2 * warp_margin)
+        self.padded_depth_target = to_device(np.zeros(padded, np.float32), dtype)
+        self.padded_grad_depth = to_device(np.zeros(padded, np.float32), dtype)
+        self.warp_depths: list = []  # per anchor (views, H, W): the warp's depths, for its backward
+        self.grad_anchor = None  # (H + 2m, W + 2m, 3): dL/d an anchor's colour
 
     @property
     def gaussians(self):
@@ -94,24 +109,47 @@ class BlurScene:
     def camera(self, cam_to_world: np.ndarray) -> Camera:
         return Camera(self.K, cam_to_world, self.width, self.height)
 
-    def _render_exposure(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray) -> list:
-        views = [self.rasterizer.forward(self.gaussians, self.camera(virtual_pose(base, d_start, d_end, tau)), view=j)
-                 for j, tau in enumerate(taus)]
-        blur.average([v.rgb for v in views], self.blurred)
-        return views
+    def warp_buffers(self, anchors: int, views: int) -> list:
+        """[ours] At least ``anchors`` device buffers of the warp's depths, each for at least ``views`` views."""
+        dtype = self.gaussians.dtype
+        for a in range(anchors):
+            if a == len(self.warp_depths) or self.warp_depths[a].shape[0] < views:
+                buffer = to_device(np.zeros((views, self.height, self.width), np.float32), dtype)
+                self.warp_depths[a:a + 1] = [buffer]
+        return self.warp_depths
+
+    def anchor_gradient(self):
+        """[ours] The zeroed device buffer of dL/d an anchor render's colour."""
+        m = self.warp_margin
+        if self.grad_anchor is None:
+            self.grad_anchor = to_device(np.zeros((self.height + 2 * m, self.width + 2 * m, 3), np.float32),
+                                         self.gaussians.dtype)
+        self.grad_anchor.fill(0.0)
+        return self.grad_anchor
+
+    def padded_camera(self, cam_to_world: np.ndarray) -> Camera:
+        """The camera with ``warp_margin`` pixels more on every side (an anchor render of a warped step)."""
+        m = self.warp_margin
+        K = self.K.copy()
+        K[0, 2] += m
+        K[1, 2] += m
+        return Camera(K, cam_to_world, self.width + 2 * m, self.height + 2 * m)
 
     def step(self, frame: np.ndarray, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
              k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None,
-             colour: np.ndarray | None = None) -> BlurStep:
+             colour: np.ndarray | None = None, anchors: int = 0) -> BlurStep:
         """Render the frame's k virtual views, average them, apply the frame's affine ``colour``
         transform (3 x 4; None: identity), take (1 - l_B) L1 + l_B D-SSIM against ``frame`` plus
         ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``, back-propagate,
-        and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians."""
+        and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians. [ours] ``anchors`` > 0:
+        render only that many padded anchor views (:func:`anchor_groups`) and warp the k views from them
+        (``kernels.warp``); the mid view is then the anchor nearest the middle of the exposure."""
         taus = exposure_taus(k)
-        mid = int(np.argmin(np.abs(taus - 0.5)))
         self.frame.from_numpy(np.ascontiguousarray(frame, np.float32))
-        views = self._render_exposure(base, d_start, d_end, taus)
-        self.grad_depth.fill(0.0)
+        if anchors > 0:
+            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, _fallback_depth(depth))
+        else:
+            exposure = _RenderedExposure(self, base, d_start, d_end, taus)
         predicted, grad_predicted = self.blurred, self.grad_blur
         if colour is not None:  # the losses add into grad_compensated; the transform's backward writes grad_blur
             affine.forward(self.blurred, colour, self.compensated)
@@ -123,18 +161,15 @@ class BlurScene:
         grad_colour = None
         if colour is not None:
             grad_colour = affine.backward(self.blurred, colour, self.grad_compensated, self.grad_blur)
-        depth_l1 = 0.0
+        depth_l1, grad_depth = 0.0, None
         if lambda_depth > 0:
-            self.depth_target.from_numpy(np.ascontiguousarray(depth, np.float32))
-            depth_l1 = losses.masked_depth_l1(views[mid].depth, self.depth_target, self.grad_depth, weight=lambda_depth)
-        blur.spread(self.grad_blur, k, self.grad_view)
+            target, grad_depth = exposure.depth_buffers(depth)
+            depth_l1 = losses.masked_depth_l1(exposure.mid_view.depth, target, grad_depth, weight=lambda_depth)
         self.gaussians.zero_grad()
-        pose_grads = [self.rasterizer.backward(self.gaussians, v, d_rgb=self.grad_view,
-                                               d_depth=self.grad_depth if j == mid and lambda_depth > 0 else None)
-                      for j, v in enumerate(views)]
-        g_start, g_end = exposure_pose_gradients(base, d_start, d_end, taus, pose_grads)
+        grad_taus, pose_grads = exposure.backward(self.grad_blur, grad_depth)
+        g_start, g_end = exposure_pose_gradients(base, d_start, d_end, grad_taus, pose_grads)
         if rates is not None:
-            self.density.observe(self.store, virtual_pose(base, d_start, d_end, taus[mid]), self.K[0, 0])
+            self.density.observe(self.store, virtual_pose(base, d_start, d_end, exposure.mid_tau), self.K[0, 0])
             self.store.step(vars(rates))
         return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
                         g_start, g_end, grad_colour)
@@ -145,8 +180,7 @@ class BlurScene:
         weight in each virtual view times the pixel's absolute error (summed over channels, over the
         sourced pixels), averaged over the k views. Read from a backward pass whose colour gradient is
         that error, through the degree-0 colour's gradient (d rgb / d dc = blending weight x SH_C0)."""
-        taus = exposure_taus(k)
-        views = self._render_exposure(base, d_start, d_end, taus)
+        views = _RenderedExposure(self, base, d_start, d_end, exposure_taus(k)).views
         predicted = self.blurred
         if colour is not None:
             affine.forward(self.blurred, colour, self.compensated)
@@ -187,7 +221,7 @@ class BlurScene:
 
     def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int) -> np.ndarray:
         """The k-view average (H, W, 3) over an exposure, as NumPy."""
-        self._render_exposure(base, d_start, d_end, exposure_taus(k))
+        _RenderedExposure(self, base, d_start, d_end, exposure_taus(k))
         return self.blurred.to_numpy().astype(np.float32)
 
     def order_in_space(self) -> None:
@@ -216,3 +250,85 @@ class BlurScene:
 def _as_arrays(splats: Splats) -> dict[str, np.ndarray]:
     return {"means": splats.means, "quats": splats.quats, "log_scales": splats.log_scales,
             "opacity_logits": splats.opacity_logits, "colors": splats.sh}
+
+
+def _fallback_depth(depth: np.ndarray) -> float:
+    """Median valid depth of a frame (1 m without any): where an anchor render has no surface."""
+    valid = depth[depth > 0]
+    return float(np.median(valid)) if valid.size else 1.0
+
+
+class _RenderedExposure:
+    """The method's blur: all k virtual views of one exposure rendered, their mean in ``scene.blurred``."""
+
+    def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray):
+        self.scene, self.taus = scene, taus
+        self.views = [scene.rasterizer.forward(scene.gaussians, scene.camera(virtual_pose(base, d_start, d_end, tau)),
+                                               view=j) for j, tau in enumerate(taus)]
+        blur.average([v.rgb for v in self.views], scene.blurred)
+        mid = int(np.argmin(np.abs(taus - 0.5)))
+        self.mid_view, self.mid_tau = self.views[mid], float(taus[mid])
+
+    def depth_buffers(self, depth: np.ndarray) -> tuple:
+        """(target, zeroed gradient) device buffers of the mid view's depth loss, the target holding ``depth``."""
+        self.scene.depth_target.from_numpy(np.ascontiguousarray(depth, np.float32))
+        self.scene.grad_depth.fill(0.0)
+        return self.scene.depth_target, self.scene.grad_depth
+
+    def backward(self, grad_blurred, grad_depth) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Back-propagate dL/d mean view (and the mid view's depth gradient, or None) into the Gaussians'
+        gradient buffers; returns (exposure fractions, world left-perturbation pose gradients)."""
+        scene = self.scene
+        blur.spread(grad_blurred, len(self.taus), scene.grad_view)
+        return self.taus, [scene.rasterizer.backward(scene.gaussians, v, d_rgb=scene.grad_view,
+                                                     d_depth=grad_depth if v is self.mid_view else None)
+                           for v in self.views]
+
+
+class _WarpedExposure:
+    """[ours] One exposure's k virtual views warped from a few padded anchor renders, their mean in
+    ``scene.blurred``; the same interface as :class:`_RenderedExposure`."""
+
+    def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray,
+                 anchors: int, fallback_depth: float):
+        self.scene, self.taus = scene, taus
+        self.groups = anchor_groups(len(taus), anchors)
+        self.anchor_taus = np.array([float(np.mean(taus[g])) for g in self.groups])
+        poses = [virtual_pose(base, d_start, d_end, tau) for tau in taus]
+        self.anchor_poses = [virtual_pose(base, d_start, d_end, tau) for tau in self.anchor_taus]
+        self.relative = [np.stack([invert(self.anchor_poses[a]) @ poses[i] for i in group])
+                         for a, group in enumerate(self.groups)]
+        rast, gs = scene.rasterizer, scene.gaussians
+        self.anchor_views = [rast.forward(gs, scene.padded_camera(pose), view=ANCHOR_VIEWS + a)
+                             for a, pose in enumerate(self.anchor_poses)]
+        mid = int(np.argmin(np.abs(self.anchor_taus - 0.5)))
+        self.mid_view, self.mid_tau = self.anchor_views[mid], float(self.anchor_taus[mid])
+        self.depths = scene.warp_buffers(len(self.groups), max(len(g) for g in self.groups))
+        for a, anchor in enumerate(self.anchor_views):
+            warp.accumulate(anchor.rgb, anchor.depth, anchor.transmittance, self.relative[a], scene.K,
+                            scene.warp_margin, fallback_depth, 1.0 / len(taus), scene.blurred, self.depths[a],
+                            first=a == 0)
+
+    def depth_buffers(self, depth: np.ndarray) -> tuple:
+        """(target, zeroed gradient) of the mid anchor's depth loss: ``depth`` padded with invalid (0) pixels."""
+        scene = self.scene
+        scene.padded_depth_target.from_numpy(np.pad(np.asarray(depth, np.float32), scene.warp_margin))
+        scene.padded_grad_depth.fill(0.0)
+        return scene.padded_depth_target, scene.padded_grad_depth
+
+    def backward(self, grad_blurred, grad_depth) -> tuple[list[float], list[np.ndarray]]:
+        """As :meth:`_RenderedExposure.backward`; the gradients come for the k views (through their warps)
+        and for the anchors (through the warps and their renders)."""
+        scene = self.scene
+        view_grads, anchor_grads = [np.zeros(6) for _ in self.taus], [np.zeros(6) for _ in self.groups]
+        for a, group in enumerate(self.groups):
+            grad_anchor = scene.anchor_gradient()
+            g_relative = warp.backward(grad_blurred, self.anchor_views[a].rgb, self.depths[a], self.relative[a],
+                                       scene.K, scene.warp_margin, 1.0 / len(self.taus), grad_anchor)
+            for i, g in zip(group, g_relative):
+                view_grads[i], g_anchor = relative_pose_gradients(self.anchor_poses[a], g)
+                anchor_grads[a] += g_anchor
+            view = self.anchor_views[a]
+            anchor_grads[a] += scene.rasterizer.backward(scene.gaussians, view, d_rgb=grad_anchor,
+                                                         d_depth=grad_depth if view is self.mid_view else None)
+        return [*self.taus, *self.anchor_taus], [*view_grads, *anchor_grads]

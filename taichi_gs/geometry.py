@@ -226,6 +226,15 @@ def virtual_pose(base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, tau: 
     return base @ se3_exp((1.0 - tau) * np.asarray(d_start) + tau * np.asarray(d_end))
 
 
+def relative_pose_gradients(anchor: np.ndarray, g_relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Given dL/d epsilon of ``exp(epsilon) @ invert(anchor) @ target`` (a left perturbation in the anchor's
+    camera frame, [translation, rotation]), the gradients of the left perturbations of the two
+    camera-to-world poses: (dL/d target's, dL/d anchor's). ``exp(d) @ target`` moves the relative pose by
+    ``Ad(anchor^-1) d``, ``exp(d) @ anchor`` by minus that (so ``target`` itself does not enter)."""
+    g = adjoint(invert(anchor)).T @ np.asarray(g_relative, dtype=np.float64)
+    return g, -g
+
+
 def exposure_pose_gradients(
     base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus, pose_grads
 ) -> tuple[np.ndarray, np.ndarray]:

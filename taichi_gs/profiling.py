@@ -1,16 +1,16 @@
 """Where the time goes: wall and CPU seconds per stage and per kind of work inside it.
 
 :func:`install` wraps the functions that do the work (rasterizer forward and backward, losses, the
-k-view average, Adam, densification, exposure gradients, divergence checks, checkpoints and output
-writing) with timers, so a run with ``taichi-gs reconstruct --profile`` writes ``OUT/profile.json``
-and ``OUT/profile.md`` (:func:`write`). Each timed section synchronises the device at its ends, and
-time is counted exclusively: a section nested in another (a render inside a test-view exposure fit)
-is taken out of its parent. Each section also carries its inclusive seconds (the parent with what is
-nested in it: how long the test-view exposure fits took, renders included). "other host work" is a
-stage's wall time that no section covers (the Python training loop, host-side pose updates,
-progress). CPU seconds are the process's user + sys time (every thread), so CPU seconds / wall
-seconds is how many cores a section kept busy. Without :func:`install` nothing is wrapped and
-nothing is slowed down.
+k-view average or the warped views, Adam, densification, exposure gradients, divergence checks,
+checkpoints and output writing) with timers, so a run with ``taichi-gs reconstruct --profile``
+writes ``OUT/profile.json`` and ``OUT/profile.md`` (:func:`write`). Each timed section synchronises
+the device at its ends, and time is counted exclusively: a section nested in another (a render
+inside a test-view exposure fit) is taken out of its parent. Each section also carries its inclusive
+seconds (the parent with what is nested in it: how long the test-view exposure fits took, renders
+included). "other host work" is a stage's wall time that no section covers (the Python training
+loop, host-side pose updates, progress). CPU seconds are the process's user + sys time (every
+thread), so CPU seconds / wall seconds is how many cores a section kept busy. Without
+:func:`install` nothing is wrapped and nothing is slowed down.
 """
 
 from __future__ import annotations
@@ -183,7 +183,7 @@ def _wrap_forward(rasterizer_class: Any, profiler: Profiler) -> None:
 def install(profiler: Profiler) -> None:
     """Wrap the stages' work functions with ``profiler``'s timers (for the rest of the process)."""
     from . import deblur_model, density, pipeline, refine_model
-    from .kernels import affine, blur, losses, optim, splat
+    from .kernels import affine, blur, losses, optim, splat, warp
     from .stages import checkpoint, deblur, divergence, refine
 
     profiler.sync = splat.sync
@@ -195,6 +195,7 @@ def install(profiler: Profiler) -> None:
         (affine, "forward", "colour transform (device)"), (affine, "backward", "colour transform (device)"),
         (refine_model, "depth_losses", "losses (host, NumPy)"),
         (blur, "average", "k-view average / spread"), (blur, "spread", "k-view average / spread"),
+        (warp, "accumulate", "warped views (device)"), (warp, "backward", "warped views (device)"),
         (optim.Adam, "step", "Adam (Gaussians)"),
         (deblur_model, "exposure_pose_gradients", "exposure gradients (host)"),
         (density.DensityControl, "observe", "densification statistics"),

@@ -72,10 +72,11 @@ def test_identity_is_a_no_op_and_the_pull_gradient_is_exact():
 
 def test_schedule_scales_with_training_views():
     fast = PRESETS["fast"]
-    assert fast.iterations_per_view == 40 and PRESETS["paper"].iterations_per_view == 0  # the method: fixed count
-    assert scaled_schedule(fast, 10) is fast  # 400 < 600: unchanged
+    assert fast.iterations_per_view == 80 and PRESETS["paper"].iterations_per_view == 0  # the method: fixed count
+    assert fast.iterations == 1200
+    assert scaled_schedule(fast, 10) is fast  # 800 < 1200: unchanged
     long = scaled_schedule(fast, 30)
-    assert long.iterations == 1200 and long.densify_from == 2 * fast.densify_from
+    assert long.iterations == 2400 and long.densify_from == 2 * fast.densify_from
     assert long.densify_until == 2 * fast.densify_until and long.exposure_from == 2 * fast.exposure_from
     assert long.densify_every == 2 * fast.densify_every
 

@@ -74,10 +74,12 @@ def scene_outputs(name: str, subgroup: bool | None = None) -> dict[str, np.ndarr
 
 def kernel_outputs() -> dict[str, np.ndarray]:
     """Loss values and gradients, blur average / spread, the colour transform and its gradients, the
-    densification statistic, and three Adam steps on (N,), (N, C) and (N, A, B) parameters (f32)."""
+    densification statistic, a warped view and its gradients, and three Adam steps on (N,), (N, C) and
+    (N, A, B) parameters (f32)."""
     import taichi as ti
 
-    from taichi_gs.kernels import affine, blur, density_stats, losses
+    from taichi_gs.geometry import se3_exp
+    from taichi_gs.kernels import affine, blur, density_stats, losses, warp
     from taichi_gs.kernels.optim import Adam
     from taichi_gs.kernels.splat import to_device
 
@@ -123,6 +125,18 @@ def kernel_outputs() -> dict[str, np.ndarray]:
     pose = np.eye(4)
     pose[:3, 3] = [0.1, -0.2, -2.0]
     out["density_stats"] = density_stats.image_plane_gradient(dev(means), dev(grad_means), 300, pose, 40.0)
+    margin, K = 4, np.array([[40.0, 0.0, 22.5], [0.0, 40.0, 18.5], [0.0, 0.0, 1.0]])
+    anchor = rng.uniform(size=(37 + 2 * margin, 45 + 2 * margin, 3))
+    alpha = np.where(rng.uniform(size=anchor.shape[:2]) < 0.9, 0.95, 0.1)  # a few pixels without a surface
+    anchor_depth = (2.0 + 0.2 * np.sin(np.arange(anchor.shape[1]) / 6.0))[None, :] * alpha
+    M = se3_exp(np.array([0.03, -0.02, 0.01, 0.02, -0.03, 0.01]))
+    views = np.stack([M, se3_exp(np.array([-0.02, 0.01, 0.0, 0.01, 0.02, -0.01])) @ M])
+    warped, z, grad_anchor = dev(np.zeros(pred.shape)), dev(np.zeros((2, 37, 45))), dev(np.zeros(anchor.shape))
+    warp.accumulate(dev(anchor), dev(anchor_depth), dev(1.0 - alpha), views, K, margin, 2.0, 0.5, warped, z,
+                    first=True)
+    out["warp"], out["warp_depth"] = warped.to_numpy(), z.to_numpy()
+    out["d_warp_pose"] = warp.backward(dev(target - 0.5), dev(anchor), z, views, K, margin, 0.5, grad_anchor)
+    out["d_warp_anchor"] = grad_anchor.to_numpy()
     shapes = {"x": (300, 3), "y": (300,), "z": (300, 4, 3)}
     params = {name: dev(rng.normal(size=shape)) for name, shape in shapes.items()}
     grads = {name: dev(np.zeros(shape)) for name, shape in shapes.items()}

@@ -133,16 +133,21 @@ class DeblurConfig:
     densify_by: str = "gradient"
     error_densify_share: float = 0.05
     error_densify_frames: int = 4
+    # [ours] warped virtual views: render only the fewest anchor views (padded by warp_px + 2 pixels) that
+    # leave every virtual view within warp_px of one, and make the k views by warping the anchors' renders
+    # through their depth (exact for rotations; disocclusions of translations are approximated)
+    warp_views: bool = False
+    warp_px: float = 6.0
 
 
 PRESETS = {
     "paper": DeblurConfig(),
-    # CPU-sized: 1/50 of the iterations, so colours learn 8x faster; exposures wait for the scene to
+    # CPU-sized: 1/25 of the iterations, so colours learn 8x faster; exposures wait for the scene to
     # settle; full resolution (training at half size left speckles at full size: -7 dB on the sample).
     # k = 7 for time, so fast holds the k-view blur sum to 2 px steps (exposures up to 12 px; the
     # sample's reach ~8-12 px); paper keeps the method's 1 px rule of thumb with k = 15.
-    "fast": DeblurConfig(k=7, max_step_px=2.0, iterations=600, sh_degree=0, lr_colors=0.02, densify_from=100, densify_until=450,
-                         densify_every=100, max_gaussians=100_000, reset_opacity_every=0,
+    "fast": DeblurConfig(k=7, max_step_px=2.0, iterations=1200, sh_degree=0, lr_colors=0.02, densify_from=100,
+                         densify_until=450, densify_every=100, max_gaussians=100_000, reset_opacity_every=0,
                          lr_exposure=2e-3, exposure_from=120, checkpoint_every=100,
                          # [ours] real captures: +1.2 dB on held-out sharpest frames of a 7-Scenes slice,
                          # +0.06 dB on synthetic (BENCHMARKS, "Stage 3 on real captures")
@@ -150,10 +155,10 @@ PRESETS = {
                          # [ours] k per exposure (3..7 views at 2 px steps): 0.75x the stage-3 CPU time on the
                          # sample at +0.08 dB held-out PSNR (BENCHMARKS, "Quality per minute")
                          adaptive_k=True,
-                         # [ours] at least 40 steps per training view (600 iterations up to 15 views, then 40 per
-                         # view): +1.8 dB held-out on a 60-frame sequence (+4.2 -> +6.1 dB over the blurred input) at
-                         # 2.1x the stage-3 CPU time, +0.55 dB on a real capture (BENCHMARKS, "Steps per view")
-                         iterations_per_view=40,
+                         # [ours] at least 80 steps per training view (1200 iterations up to 15 views, then 80 per
+                         # view; 40 per view gave +1.8 dB held-out on a 60-frame sequence and +0.55 dB on a real
+                         # capture, BENCHMARKS "Steps per view"); affordable with warped views (below)
+                         iterations_per_view=80,
                          # [ours] held-out fits by Rprop: 20 steps score like Adam's 30 on the sample and on a real
                          # capture (BENCHMARKS, "Held-out fits by Rprop"); the Adam fit took 30
                          test_pose_iterations=20, test_fit="rprop",
@@ -164,7 +169,11 @@ PRESETS = {
                          # [ours] 4 px steps between virtual views for the first 30% of the iterations: 0.91x the
                          # stage-3 CPU time on the sample at +0.06 dB held-out; a real capture at 50% lost nothing
                          # (BENCHMARKS, "Fewer virtual views while the scene is soft")
-                         early_views_fraction=0.3),
+                         early_views_fraction=0.3,
+                         # [ours] warped virtual views at twice the steps (1200 iterations, 80 per view) against
+                         # rendered views at 600 / 40: 0.69-0.96x the stage-3 time, held-out PSNR +0.09 dB on the
+                         # sample, +0.16 / +0.36 dB on two real captures (BENCHMARKS, "Warped virtual views")
+                         warp_views=True),
 }
 
 
@@ -367,7 +376,7 @@ def run_deblur(
     height, width = frames.colors[0].shape[:2]
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
-    model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced)
+    model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced, warp_margin=warp_margin(config))
     centres = poses[train, :3, 3]
     if config.init_max_px > 0:
         limit = footprint_limit(model.arrays()["means"], centres, frames.K[0, 0], config.init_max_px)
@@ -405,10 +414,11 @@ def run_deblur(
         rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
                       quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
                       colors=config.lr_colors)
+        k = _views(offsets[frame], frames.K[0, 0], frames.median_depth[frame], config, fraction)
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
-                          _views(offsets[frame], frames.K[0, 0], frames.median_depth[frame], config, fraction),
-                          config.lambda_dssim, config.lambda_depth, rates,
-                          colours[frame] if config.colour_affine else None)
+                          k, config.lambda_dssim, config.lambda_depth, rates,
+                          colours[frame] if config.colour_affine else None,
+                          _anchors(offsets[frame], frames.K[0, 0], frames.median_depth[frame], config, k))
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
@@ -473,6 +483,19 @@ def _views(d: np.ndarray, focal: float, depth: float, config: DeblurConfig, frac
     return views_for_span(exposure_px(d[0], d[1], focal, depth), step, config.k_min, config.k)
 
 
+def warp_margin(config: DeblurConfig) -> int:
+    """[ours] Pixels added on each side of an anchor render (0 without ``warp_views``)."""
+    return math.ceil(config.warp_px) + 2 if config.warp_views else 0
+
+
+def _anchors(d: np.ndarray, focal: float, depth: float, config: DeblurConfig, k: int) -> int:
+    """[ours] Anchor renders of one exposure with ``warp_views`` (0: render all k views): the fewest that
+    leave every virtual view within ``warp_px`` of its anchor, ceil(span / (2 warp_px)), within [1, k]."""
+    if not config.warp_views:
+        return 0
+    return int(min(max(math.ceil(exposure_px(d[0], d[1], focal, depth) / (2.0 * config.warp_px)), 1), k))
+
+
 def _phase(sequence: Sequence, sourced: np.ndarray | None, model: BlurScene, cache: dict[int, _Frames],
            scale: int) -> tuple[_Frames, BlurScene]:
     """[ours] Coarse-to-fine: the frames at resolution divisor ``scale`` (loaded once) and ``model``
@@ -482,7 +505,8 @@ def _phase(sequence: Sequence, sourced: np.ndarray | None, model: BlurScene, cac
     frames = cache[scale]
     height, width = frames.colors[0].shape[:2]
     if (model.width, model.height) != (width, height):
-        moved = BlurScene(model.splats(), frames.K, width, height, sourced=frames.sourced)
+        moved = BlurScene(model.splats(), frames.K, width, height, sourced=frames.sourced,
+                          warp_margin=model.warp_margin)
         moved.load_state(model.state())
         model = moved
     return frames, model
@@ -582,9 +606,10 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
     colour = IDENTITY.copy()
     guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
     for it in range(config.test_pose_iterations):
-        step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1],
-                          _views(d, frames.K[0, 0], frames.median_depth[frame], config),
-                          config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None)
+        k = _views(d, frames.K[0, 0], frames.median_depth[frame], config)
+        step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], k,
+                          config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
+                          anchors=_anchors(d, frames.K[0, 0], frames.median_depth[frame], config, k))
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         d = exposure_step(d, np.stack([step.grad_start, step.grad_end]))
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])

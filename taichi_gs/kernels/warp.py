@@ -1,0 +1,339 @@
+"""[ours] Virtual views by depth warping (stage 3's ``warp_views``): sharp views at poses near an
+*anchor* view's pose are made by sampling the anchor's render where each of their pixels' surface lands,
+instead of rasterising them again. The anchor is rendered with a ``margin`` of extra pixels on every
+side (principal point shifted by the margin), so views moved by up to about that many pixels sample
+rendered content, not a clamped edge. One kernel launch warps all the views of one anchor.
+
+Pixel p of a target view (rasterizer convention: pixel u samples image coordinate u + 0.5) looks along
+ray r(p) = K^-1 (p + 0.5, 1). Its depth z comes from a short fixed-point iteration on the anchor's
+surface: start with the anchor's depth at p, land the point z r(p) in the anchor (X_a = R z r(p) + t,
+the view's ``target_to_anchor`` = [R | t]), read the anchor's surface depth there (nearest pixel,
+blended z / alpha where alpha >= 1/2, else ``fallback`` metres), and take that surface point's depth
+in the target camera. The view is the anchor's colour at the projection q of X_a, interpolated by
+Catmull-Rom (bilinear's low pass, trained through, made the scene over-sharpen; q is clamped so that
+every tap lies in the padded image). Exact for rotations at any depth up to the interpolation; for
+translations it misplaces what the anchor does not see (disocclusions).
+
+Backward (z held fixed: the fixed point's nearest-pixel lookups are piecewise constant): dL/d anchor
+colour (the interpolation weights' transpose, added into the caller's buffer) and, per view, dL/d
+epsilon, the 6-vector [translation, rotation] of a left perturbation ``exp(epsilon) target_to_anchor``
+in the anchor's camera frame (summed per image row, then in float64 on the host);
+``geometry.relative_pose_gradients`` turns it into the two cameras' world perturbations.
+
+Loop structure: the CPU runs a task per image row, and its backward scatters without atomics (slow
+there): each thread's band of rows adds into a private copy of the colour gradient, and a second loop
+sums the copies. GPU backends run a thread per pixel and add atomically.
+"""
+
+import functools
+from types import SimpleNamespace
+
+import numpy as np
+import taichi as ti
+
+from . import runtime, scan
+
+FIXED_POINT_STEPS = 1  # depth refinements after the first guess (none are needed for a pure rotation)
+MIN_ALPHA = 0.5  # anchor pixels with less accumulated opacity have no surface: the fallback depth is used
+MIN_Z = 1e-6
+N_POSE = 6
+TAPS = 4  # interpolation taps per axis (Catmull-Rom)
+LANE_SPREAD = 1024  # loop indices per lane: a loop this long is spread over the CPU's threads
+
+
+@functools.cache
+def _kernels(dt) -> SimpleNamespace:
+    img3 = ti.types.ndarray(dtype=dt, ndim=3)
+    img2 = ti.types.ndarray(dtype=dt, ndim=2)
+    vec3 = ti.types.vector(3, dt)
+    vec4 = ti.types.vector(4, dt)
+    spread = runtime.loop_spread()  # image rows x spread indices (see runtime.loop_spread)
+
+    @ti.func
+    def surface_depth(depth: ti.template(), trans: ti.template(), sx, sy, fallback):
+        """Depth of the anchor's surface at the pixel nearest index coordinates (sx, sy), clamped."""
+        hp, wp = depth.shape[0], depth.shape[1]
+        iu = ti.cast(ti.min(ti.max(sx + 0.5, 0.0), wp - 0.5), ti.i32)  # nearest: truncation of non-negatives
+        iv = ti.cast(ti.min(ti.max(sy + 0.5, 0.0), hp - 0.5), ti.i32)
+        alpha = 1.0 - trans[iv, iu]
+        z = fallback
+        if alpha >= MIN_ALPHA:
+            z = depth[iv, iu] / alpha
+        return z
+
+    @ti.func
+    def land(u, v, z, R, t, intr, margin):
+        """(X_a, sx, sy): target pixel (u, v) at depth z in the anchor's camera, and its anchor index
+        coordinates (image coordinate - 0.5, margin included)."""
+        ray = vec3((u + 0.5 - intr[2]) / intr[0], (v + 0.5 - intr[3]) / intr[1], 1.0)
+        X = R @ (z * ray) + t
+        zc = ti.max(X[2], MIN_Z)
+        sx = intr[0] * X[0] / zc + intr[2] + margin - 0.5
+        sy = intr[1] * X[1] / zc + intr[3] + margin - 0.5
+        return X, sx, sy
+
+    @ti.func
+    def target_depth(u, v, depth: ti.template(), trans: ti.template(), R, t, intr, margin, fallback):
+        """The fixed point's depth of target pixel (u, v) (see the module docstring)."""
+        z = surface_depth(depth, trans, ti.cast(u + margin, dt), ti.cast(v + margin, dt), fallback)
+        for _ in ti.static(range(FIXED_POINT_STEPS)):
+            X, sx, sy = land(u, v, z, R, t, intr, margin)
+            zs = surface_depth(depth, trans, sx, sy, fallback)
+            surface = zs * vec3((sx + 0.5 - margin - intr[2]) / intr[0], (sy + 0.5 - margin - intr[3]) / intr[1], 1.0)
+            z = ti.max((R.transpose() @ (surface - t))[2], MIN_Z)
+        return z
+
+    @ti.func
+    def interpolation_weights(f):
+        """Catmull-Rom weights of the taps at -1, 0, 1, 2 for a sample at fraction f past tap 0, and their
+        derivatives in f."""
+        f2 = f * f
+        f3 = f2 * f
+        w = ti.Vector([0.5 * (-f3 + 2.0 * f2 - f), 0.5 * (3.0 * f3 - 5.0 * f2 + 2.0),
+                       0.5 * (-3.0 * f3 + 4.0 * f2 + f), 0.5 * (f3 - f2)], dt=dt)
+        dw = ti.Vector([0.5 * (-3.0 * f2 + 4.0 * f - 1.0), 0.5 * (9.0 * f2 - 10.0 * f),
+                        0.5 * (-9.0 * f2 + 8.0 * f + 1.0), 0.5 * (3.0 * f2 - 2.0 * f)], dt=dt)
+        return w, dw
+
+    @ti.func
+    def cell(s, n):
+        """(first tap, f, inside) of a sample at index coordinate s of an axis of n pixels: s is clamped so
+        that every tap lies in the image (the margin keeps that rare); the taps are first .. first + TAPS - 1,
+        f the fraction past tap TAPS / 2 - 1; inside is 0 where s was clamped (no gradient)."""
+        c = ti.min(ti.max(s, ti.cast(TAPS // 2 - 1, dt)), ti.cast(n - TAPS // 2, dt))
+        i0 = ti.min(ti.cast(c, ti.i32), n - TAPS // 2 - 1)
+        return i0 - (TAPS // 2 - 1), c - i0, ti.cast(c == s, dt)
+
+    @ti.func
+    def view_transform(transforms: ti.template(), i):
+        """(R, t) of view i from its row of ``transforms`` (R row-major, then t)."""
+        R = ti.Matrix([[transforms[i, 3 * r + c] for c in ti.static(range(3))] for r in ti.static(range(3))], dt=dt)
+        return R, vec3(transforms[i, 9], transforms[i, 10], transforms[i, 11])
+
+    @ti.func
+    def pixel_forward(u, v, anchor_rgb: ti.template(), anchor_depth: ti.template(), anchor_trans: ti.template(),
+                      transforms: ti.template(), n_views, intr, margin, fallback, weight, keep, out: ti.template(),
+                      z_out: ti.template()):
+        """Target pixel (u, v) of every view: its depths into ``z_out``, the weighted sum into ``out``."""
+        hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
+        total = vec3(0.0, 0.0, 0.0)
+        for view in range(n_views):
+            R, t = view_transform(transforms, view)
+            z = target_depth(u, v, anchor_depth, anchor_trans, R, t, intr, margin, fallback)
+            z_out[view, v, u] = z
+            _X, sx, sy = land(u, v, z, R, t, intr, margin)
+            x0, fx, _inside_x = cell(sx, wp)
+            y0, fy, _inside_y = cell(sy, hp)
+            wx, _dwx = interpolation_weights(fx)
+            wy, _dwy = interpolation_weights(fy)
+            for b in ti.static(range(TAPS)):
+                row = vec3(0.0, 0.0, 0.0)
+                for a in ti.static(range(TAPS)):
+                    row += wx[a] * vec3(anchor_rgb[y0 + b, x0 + a, 0], anchor_rgb[y0 + b, x0 + a, 1],
+                                        anchor_rgb[y0 + b, x0 + a, 2])
+                total += wy[b] * row
+        for c in ti.static(range(3)):
+            out[v, u, c] = keep * out[v, u, c] + weight * total[c]
+
+    @ti.kernel
+    def forward(
+        anchor_rgb: img3,  # (Hp, Wp, 3) the anchor's render, Hp = H + 2 margin
+        anchor_depth: img2,  # (Hp, Wp) its blended z
+        anchor_trans: img2,  # (Hp, Wp) its final transmittance
+        transforms: img2,  # (>= V, 12) each view's target -> anchor transform
+        n_views: ti.i32,  # V
+        intr: vec4,  # target fx, fy, cx, cy (rasterizer pixel centres)
+        margin: ti.i32,
+        fallback: dt,  # metres, where the anchor has no surface
+        weight: dt,
+        keep: dt,  # out = keep * out + weight * (sum of the V warped views)
+        out: img3,  # out (H, W, 3)
+        z_out: img3,  # out (>= V, H, W): the fixed point's depths, for the backward
+    ):
+        if ti.static(spread > 1):  # CPU: a task per image row
+            for i in range(out.shape[0] * spread):
+                if i % spread == 0:
+                    for u in range(out.shape[1]):
+                        pixel_forward(u, i // spread, anchor_rgb, anchor_depth, anchor_trans, transforms, n_views,
+                                      intr, margin, fallback, weight, keep, out, z_out)
+        else:  # GPU: a thread per pixel
+            for v, u in ti.ndrange(out.shape[0], out.shape[1]):
+                pixel_forward(u, v, anchor_rgb, anchor_depth, anchor_trans, transforms, n_views, intr, margin,
+                              fallback, weight, keep, out, z_out)
+
+    @ti.func
+    def pixel_backward(u, v, grad_out: ti.template(), anchor_rgb: ti.template(), z_in: ti.template(), view, R, t,
+                       intr, margin, weight, grad_anchor: ti.template(), lane, private: ti.template()):
+        """Scatter target pixel (u, v)'s share of dL/d anchor colour (into ``grad_anchor[lane]`` without
+        atomics when ``private``, else atomically into ``grad_anchor``) and return its dL/d epsilon."""
+        hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
+        X, sx, sy = land(u, v, z_in[view, v, u], R, t, intr, margin)
+        x0, fx, inside_x = cell(sx, wp)
+        y0, fy, inside_y = cell(sy, hp)
+        wx, dwx = interpolation_weights(fx)
+        wy, dwy = interpolation_weights(fy)
+        g = weight * vec3(grad_out[v, u, 0], grad_out[v, u, 1], grad_out[v, u, 2])
+        g_sx = ti.cast(0.0, dt)
+        g_sy = ti.cast(0.0, dt)
+        for b in ti.static(range(TAPS)):
+            y = y0 + b
+            for a in ti.static(range(TAPS)):
+                x = x0 + a
+                colour = vec3(anchor_rgb[y, x, 0], anchor_rgb[y, x, 1], anchor_rgb[y, x, 2])
+                dot = g.dot(colour)
+                g_sx += dwx[a] * wy[b] * dot
+                g_sy += wx[a] * dwy[b] * dot
+                for c in ti.static(range(3)):
+                    share = wx[a] * wy[b] * g[c]
+                    if ti.static(private):
+                        grad_anchor[lane, y, x, c] = grad_anchor[lane, y, x, c] + share
+                    else:
+                        ti.atomic_add(grad_anchor[y, x, c], share)
+        pose = ti.Vector.zero(dt, N_POSE)
+        if X[2] > MIN_Z:
+            g_sx *= inside_x
+            g_sy *= inside_y
+            inv_z = 1.0 / X[2]
+            g_X = vec3(g_sx * intr[0] * inv_z, g_sy * intr[1] * inv_z,
+                       -(g_sx * intr[0] * X[0] + g_sy * intr[1] * X[1]) * inv_z * inv_z)
+            g_rot = X.cross(g_X)
+            for c in ti.static(range(3)):
+                pose[c] = g_X[c]
+                pose[3 + c] = g_rot[c]
+        return pose
+
+    @ti.kernel
+    def backward_atomic(
+        grad_out: img3,  # (H, W, 3) dL/d out
+        anchor_rgb: img3,  # (Hp, Wp, 3)
+        z_in: img3,  # (>= V, H, W) from forward
+        transforms: img2,  # (>= V, 12)
+        n_views: ti.i32,  # V
+        intr: vec4,
+        margin: ti.i32,
+        weight: dt,
+        grad_anchor: img3,  # out, added to (Hp, Wp, 3)
+        rows: img2,  # out, zero on entry (>= H V, N_POSE): dL/d epsilon per image row and view
+    ):
+        for v, u in ti.ndrange(grad_out.shape[0], grad_out.shape[1]):  # GPU: a thread per pixel
+            for view in range(n_views):
+                R, t = view_transform(transforms, view)
+                pose = pixel_backward(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight,
+                                      grad_anchor, 0, False)
+                for c in ti.static(range(N_POSE)):
+                    ti.atomic_add(rows[v * n_views + view, c], pose[c])
+
+    @ti.kernel
+    def backward_lanes(
+        grad_out: img3,
+        anchor_rgb: img3,
+        z_in: img3,
+        transforms: img2,
+        n_views: ti.i32,
+        intr: vec4,
+        margin: ti.i32,
+        weight: dt,
+        lanes: ti.i32,
+        private: ti.types.ndarray(dtype=dt, ndim=4),  # scratch (lanes, Hp, Wp, 3), zero on entry and on exit
+        grad_anchor: img3,  # out, added to (Hp, Wp, 3)
+        rows: img2,
+    ):
+        h = grad_out.shape[0]
+        for i in range(lanes * LANE_SPREAD):
+            if i % LANE_SPREAD == 0:
+                lane = i // LANE_SPREAD
+                for v in range(lane * h // lanes, (lane + 1) * h // lanes):
+                    for view in range(n_views):
+                        R, t = view_transform(transforms, view)
+                        acc = ti.Vector.zero(dt, N_POSE)
+                        for u in range(grad_out.shape[1]):
+                            acc += pixel_backward(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight,
+                                                  private, lane, True)
+                        for c in ti.static(range(N_POSE)):
+                            rows[v * n_views + view, c] = acc[c]
+        for i in range(grad_anchor.shape[0] * spread):
+            if i % spread == 0:
+                y = i // spread
+                for x in range(grad_anchor.shape[1]):
+                    for c in ti.static(range(3)):
+                        total = grad_anchor[y, x, c]
+                        for lane in range(lanes):
+                            total += private[lane, y, x, c]
+                            private[lane, y, x, c] = 0.0
+                        grad_anchor[y, x, c] = total
+
+    return SimpleNamespace(forward=forward, backward_atomic=backward_atomic, backward_lanes=backward_lanes)
+
+
+_scratch = scan.Scratch()
+_lane_buffers: dict[str, ti.Ndarray] = {}  # the CPU backward's private gradients, zeroed when made
+
+
+def _args(transforms: np.ndarray, K: np.ndarray, dtype) -> tuple:
+    """(V, 12) device rows [R row-major, t] of the views' 4x4 target -> anchor transforms, and the
+    intrinsics vector."""
+    M = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
+    rows = np.concatenate([M[:, :3, :3].reshape(-1, 9), M[:, :3, 3]], axis=1)
+    device = _scratch.get(f"warp transforms {dtype}", len(rows), dtype, (12,))
+    padded = np.zeros(device.shape, rows.dtype)
+    padded[: len(rows)] = rows
+    device.from_numpy(padded.astype(np.float64 if dtype == ti.f64 else np.float32))
+    K = np.asarray(K, dtype=np.float64)
+    return device, ti.Vector([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dt=dtype)
+
+
+def _check(anchor_rgb: ti.Ndarray, image: ti.Ndarray, margin: int, z: ti.Ndarray, views: int) -> None:
+    hp, wp = anchor_rgb.shape[:2]
+    h, w = image.shape[:2]
+    if (hp, wp) != (h + 2 * margin, w + 2 * margin) or anchor_rgb.dtype != image.dtype or min(hp, wp) < TAPS:
+        raise ValueError(f"anchor of shape {tuple(anchor_rgb.shape)} ({anchor_rgb.dtype}) does not pad an image of "
+                         f"shape {tuple(image.shape)} ({image.dtype}) by {margin} px")
+    if z.shape[0] < views or tuple(z.shape[1:]) != (h, w):
+        raise ValueError(f"depth buffer of shape {tuple(z.shape)} for {views} views of {h} x {w}")
+
+
+def accumulate(anchor_rgb: ti.Ndarray, anchor_depth: ti.Ndarray, anchor_trans: ti.Ndarray,
+               targets_to_anchor: np.ndarray, K: np.ndarray, margin: int, fallback_depth: float, weight: float,
+               out: ti.Ndarray, z_out: ti.Ndarray, first: bool = False) -> None:
+    """Add ``weight`` x the sum of V target views warped from the anchor's padded render (``anchor_rgb``
+    (H + 2m, W + 2m, 3), its blended depth and transmittance) into ``out`` (H, W, 3); ``first``
+    overwrites instead. ``targets_to_anchor``: (V, 4, 4) from each target camera to the anchor's; ``K``:
+    the targets' intrinsics in the rasterizer's convention (the anchor's are the same, shifted by the
+    margin). ``z_out`` (>= V, H, W) receives each pixel's depth for :func:`backward`."""
+    views = len(np.asarray(targets_to_anchor).reshape(-1, 4, 4))
+    _check(anchor_rgb, out, margin, z_out, views)
+    transforms, intr = _args(targets_to_anchor, K, out.dtype)
+    _kernels(out.dtype).forward(anchor_rgb, anchor_depth, anchor_trans, transforms, views, intr, margin,
+                                fallback_depth, weight, 0.0 if first else 1.0, out, z_out)
+
+
+def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, targets_to_anchor: np.ndarray,
+             K: np.ndarray, margin: int, weight: float, grad_anchor: ti.Ndarray) -> np.ndarray:
+    """Given dL/d out of :func:`accumulate`'s term (``grad_out`` (H, W, 3); the term is ``weight`` x the
+    sum of the warped views), add dL/d anchor colour into ``grad_anchor`` and return dL/d epsilon (V, 6)
+    [translation, rotation] for ``exp(epsilon) @ targets_to_anchor[i]``, epsilon in the anchor's frame."""
+    views = len(np.asarray(targets_to_anchor).reshape(-1, 4, 4))
+    _check(anchor_rgb, grad_out, margin, z, views)
+    dtype, height = grad_out.dtype, grad_out.shape[0]
+    rows = _scratch.get(f"warp rows {dtype}", height * views, dtype, (N_POSE,))
+    transforms, intr = _args(targets_to_anchor, K, dtype)
+    kernels = _kernels(dtype)
+    backend = runtime.current()
+    if backend.gpu_kernels:
+        rows.fill(0.0)
+        kernels.backward_atomic(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, grad_anchor, rows)
+    else:
+        lanes = max(backend.cpu_threads, 1)
+        private = _private_gradients(lanes, tuple(anchor_rgb.shape), dtype)
+        kernels.backward_lanes(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, lanes, private,
+                               grad_anchor, rows)
+    return rows.to_numpy()[: height * views].astype(np.float64).reshape(height, views, N_POSE).sum(axis=0)
+
+
+def _private_gradients(lanes: int, shape: tuple, dtype) -> ti.Ndarray:
+    """The CPU backward's per-lane gradient copies (zero between calls: the kernel zeroes what it adds)."""
+    key = f"{lanes} {shape} {dtype}"
+    if key not in _lane_buffers:
+        _lane_buffers[key] = ti.ndarray(dtype, (lanes,) + shape)
+        _lane_buffers[key].fill(0.0)
+    return _lane_buffers[key]
