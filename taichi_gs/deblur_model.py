@@ -137,17 +137,19 @@ class BlurScene:
 
     def step(self, frame: np.ndarray, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
              k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None,
-             colour: np.ndarray | None = None, anchors: int = 0) -> BlurStep:
+             colour: np.ndarray | None = None, anchors: int = 0, fallback_depth: float | None = None) -> BlurStep:
         """Render the frame's k virtual views, average them, apply the frame's affine ``colour``
         transform (3 x 4; None: identity), take (1 - l_B) L1 + l_B D-SSIM against ``frame`` plus
         ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``, back-propagate,
         and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians. [ours] ``anchors`` > 0:
         render only that many padded anchor views (:func:`anchor_groups`) and warp the k views from them
-        (``kernels.warp``); the mid view is then the anchor nearest the middle of the exposure."""
+        (``kernels.warp``); the mid view is then the anchor nearest the middle of the exposure, and
+        ``fallback_depth`` is the depth where an anchor has no surface (None: :func:`median_depth` of ``depth``)."""
         taus = exposure_taus(k)
         self.frame.from_numpy(np.ascontiguousarray(frame, np.float32))
         if anchors > 0:
-            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, _fallback_depth(depth))
+            fallback = median_depth(depth) if fallback_depth is None else fallback_depth
+            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback)
         else:
             exposure = _RenderedExposure(self, base, d_start, d_end, taus)
         predicted, grad_predicted = self.blurred, self.grad_blur
@@ -252,8 +254,8 @@ def _as_arrays(splats: Splats) -> dict[str, np.ndarray]:
             "opacity_logits": splats.opacity_logits, "colors": splats.sh}
 
 
-def _fallback_depth(depth: np.ndarray) -> float:
-    """Median valid depth of a frame (1 m without any): where an anchor render has no surface."""
+def median_depth(depth: np.ndarray) -> float:
+    """Median valid (> 0) depth of a frame, 1 m without any."""
     valid = depth[depth > 0]
     return float(np.median(valid)) if valid.size else 1.0
 

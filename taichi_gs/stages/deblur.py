@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..deblur_model import BlurScene, Rates
+from ..deblur_model import BlurScene, Rates, median_depth
 from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
 from ..geometry import invert, se3_log, virtual_pose
@@ -313,11 +313,6 @@ def _area_intrinsics(K: np.ndarray, scale: int) -> np.ndarray:
     return K
 
 
-def _median_depth(depth: np.ndarray) -> float:
-    valid = depth[depth > 0]
-    return float(np.median(valid)) if valid.size else 1.0
-
-
 @dataclass
 class _Frames:
     """The sequence at training resolution."""
@@ -337,7 +332,7 @@ def _load_frames(sequence: Sequence, scale: int, sourced: np.ndarray | None) -> 
     depths = [downsample_depth(sequence.depth(i), scale)[:h, :w] for i in range(len(sequence))]
     if sourced is not None:
         sourced = _downsample_color(sourced.astype(np.float32), scale) >= SOURCED
-    return _Frames(colors, depths, np.array([_median_depth(d) for d in depths]), _area_intrinsics(sequence.K(), scale),
+    return _Frames(colors, depths, np.array([median_depth(d) for d in depths]), _area_intrinsics(sequence.K(), scale),
                    sourced)
 
 
@@ -418,7 +413,8 @@ def run_deblur(
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
                           k, config.lambda_dssim, config.lambda_depth, rates,
                           colours[frame] if config.colour_affine else None,
-                          _anchors(offsets[frame], frames.K[0, 0], frames.median_depth[frame], config, k))
+                          anchors=_anchors(offsets[frame], frames.K[0, 0], frames.median_depth[frame], config, k),
+                          fallback_depth=frames.median_depth[frame])
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
@@ -609,7 +605,8 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
         k = _views(d, frames.K[0, 0], frames.median_depth[frame], config)
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], k,
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
-                          anchors=_anchors(d, frames.K[0, 0], frames.median_depth[frame], config, k))
+                          anchors=_anchors(d, frames.K[0, 0], frames.median_depth[frame], config, k),
+                          fallback_depth=frames.median_depth[frame])
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         d = exposure_step(d, np.stack([step.grad_start, step.grad_end]))
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
