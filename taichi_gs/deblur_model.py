@@ -322,15 +322,13 @@ class _WarpedExposure:
         """As :meth:`_RenderedExposure.backward`; the gradients come for the k views (through their warps)
         and for the anchors (through the warps and their renders)."""
         scene = self.scene
-        view_grads, anchor_grads = [np.zeros(6) for _ in self.taus], [np.zeros(6) for _ in self.groups]
-        for a, group in enumerate(self.groups):
+        view_grads, anchor_grads = [], []
+        for a, view in enumerate(self.anchor_views):  # the groups are consecutive runs of the k views, in order
             grad_anchor = scene.anchor_gradient()
-            g_relative = warp.backward(grad_blurred, self.anchor_views[a].rgb, self.depths[a], self.relative[a],
-                                       scene.K, scene.warp_margin, 1.0 / len(self.taus), grad_anchor)
-            for i, g in zip(group, g_relative):
-                view_grads[i], g_anchor = relative_pose_gradients(self.anchor_poses[a], g)
-                anchor_grads[a] += g_anchor
-            view = self.anchor_views[a]
-            anchor_grads[a] += scene.rasterizer.backward(scene.gaussians, view, d_rgb=grad_anchor,
-                                                         d_depth=grad_depth if view is self.mid_view else None)
+            g_relative = warp.backward(grad_blurred, view.rgb, self.depths[a], self.relative[a], scene.K,
+                                       scene.warp_margin, 1.0 / len(self.taus), grad_anchor)
+            g_views, g_anchor = relative_pose_gradients(self.anchor_poses[a], g_relative)
+            view_grads.extend(g_views)
+            anchor_grads.append(g_anchor + scene.rasterizer.backward(
+                scene.gaussians, view, d_rgb=grad_anchor, d_depth=grad_depth if view is self.mid_view else None))
         return [*self.taus, *self.anchor_taus], [*view_grads, *anchor_grads]

@@ -227,12 +227,13 @@ def virtual_pose(base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, tau: 
 
 
 def relative_pose_gradients(anchor: np.ndarray, g_relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Given dL/d epsilon of ``exp(epsilon) @ invert(anchor) @ target`` (a left perturbation in the anchor's
-    camera frame, [translation, rotation]), the gradients of the left perturbations of the two
-    camera-to-world poses: (dL/d target's, dL/d anchor's). ``exp(d) @ target`` moves the relative pose by
-    ``Ad(anchor^-1) d``, ``exp(d) @ anchor`` by minus that (so ``target`` itself does not enter)."""
-    g = adjoint(invert(anchor)).T @ np.asarray(g_relative, dtype=np.float64)
-    return g, -g
+    """Given dL/d epsilon (V, 6) of ``exp(epsilon) @ invert(anchor) @ target_i`` for V targets (left
+    perturbations in the anchor's camera frame, [translation, rotation]), the gradients of the left
+    perturbations of the camera-to-world poses: (dL/d each target's (V, 6), dL/d the anchor's (6,)).
+    ``exp(d) @ target`` moves the relative pose by ``Ad(anchor^-1) d``, ``exp(d) @ anchor`` by minus that
+    (so the targets themselves do not enter)."""
+    g = np.atleast_2d(np.asarray(g_relative, dtype=np.float64)) @ adjoint(invert(anchor))
+    return g, -g.sum(axis=0)
 
 
 def exposure_pose_gradients(
