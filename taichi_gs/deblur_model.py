@@ -206,7 +206,7 @@ class BlurScene:
 
     def coverage(self, cam_to_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(depth, alpha) at one pose as NumPy: depth as :meth:`render` gives it, alpha the accumulated opacity."""
-        _, depth, alpha = self.rasterizer.forward(self.gaussians, self.camera(cam_to_world)).to_numpy()
+        _, depth, alpha = self.rasterizer.forward(self.gaussians, self.camera(cam_to_world), with_colour=False).to_numpy()
         return np.where(alpha >= 0.01, depth / np.maximum(alpha, 0.01), 0.0), alpha
 
     def add_gaussians(self, means: np.ndarray, rgb: np.ndarray, radius: np.ndarray, opacity: float) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .gaussian_store import GaussianStore
+from .gaussian_store import GaussianStore, morton_order
 from .geometry import raster_intrinsics
 from .render import Camera, Rasterizer, losses, to_device
 from .splats import logit
@@ -42,11 +42,15 @@ class DepthRefiner:
     Adam to the Gaussians. ``free_scale`` also trains anisotropic scales and rotations (ablation).
 
     ``K`` is in the data's OpenCV convention; the rasterizer's half-pixel shift is applied here.
+    ``spatial_order`` ([ours]) keeps the Gaussians in Morton order of their initial centres (pruning keeps
+    the order): the same renders, read with fewer cache misses; :meth:`kept_indices` maps back.
     """
 
     def __init__(self, means: np.ndarray, opacity_logits: np.ndarray, scale: float, K: np.ndarray, width: int,
-                 height: int, free_scale: bool = False, min_alpha: float = 0.5):
+                 height: int, free_scale: bool = False, min_alpha: float = 0.5, spatial_order: bool = False):
         n = len(means)
+        self.kept = morton_order(means) if spatial_order else np.arange(n)
+        means, opacity_logits = np.asarray(means)[self.kept], np.asarray(opacity_logits)[self.kept]
         self.free_scale = free_scale
         self.trained = FREE_SCALE if free_scale else FIXED_SCALE
         self.log_scale = float(np.log(scale))
@@ -60,7 +64,6 @@ class DepthRefiner:
         if free_scale:
             arrays["quats"] = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
         self.store = GaussianStore(arrays, self.trained, isotropic=not free_scale)
-        self.kept = np.arange(n)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_alpha = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
 
@@ -76,7 +79,8 @@ class DepthRefiner:
     def _depth_backward(self, target_depth: np.ndarray, cam_to_world: np.ndarray, weight: float,
                         coverage_weight: float) -> tuple[float, float, np.ndarray]:
         """Render one camera, add its weighted loss gradients to the Gaussians; (depth, coverage, dL/dpose)."""
-        view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height))
+        view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height),
+                                       with_colour=False)
         depth, coverage, d_depth, d_alpha = depth_losses(
             view.depth.to_numpy(), view.transmittance.to_numpy(), target_depth, self.min_alpha, weight,
             coverage_weight)

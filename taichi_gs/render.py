@@ -23,7 +23,7 @@ Stage 2 (isotropic fixed scale, depth only; ``K`` from ``geometry.raster_intrins
     rast = Rasterizer()
     adam = Adam(gs.params, gs.grads, {"means": 1.6e-4 * extent, "opacity_logits": 0.05})
     target, g_depth = to_device(depth_i, gs.dtype), to_device(np.zeros((h, w)), gs.dtype)
-    view = rast.forward(gs, Camera(K, poses[i], w, h))
+    view = rast.forward(gs, Camera(K, poses[i], w, h), with_colour=False)  # depth and alpha only
     gs.zero_grad(); g_depth.fill(0.0)
     l_d = losses.masked_depth_l1(view.depth, target, g_depth, weight=lam_d)
     l_o = losses.opacity_binarization(gs.params["opacity_logits"], gs.grads["opacity_logits"], n,

@@ -110,7 +110,7 @@ def test_blending_matches_reference_given_reference_lists(seed: int) -> None:
               ti.ndarray(ti.f64, (HEIGHT, WIDTH)), ti.ndarray(ti.i32, (HEIGHT, WIDTH))]
     tiles_x = -(-WIDTH // TILE)
     rast.k.blend(tiles_x, len(lists), WIDTH, HEIGHT, tile_start, to_device(entries, ti.f64),
-                 ti.Vector(BACKGROUND, dt=ti.f64), rast._state(F_WIDTH, WIDTH, HEIGHT), *images)
+                 ti.Vector(BACKGROUND, dt=ti.f64), rast._state(F_WIDTH, WIDTH, HEIGHT), *images, True)
     rgb, depth, trans, last = (a.to_numpy() for a in images)
     for name, got, expected in (("rgb", rgb, want[0]), ("depth", depth, want[1]), ("alpha", 1 - trans, want[2])):
         assert np.abs(got - expected).max() < 1e-10, name

@@ -85,3 +85,36 @@ def test_resume_from_a_checkpoint_matches_an_uninterrupted_run(scene, tmp_path):
 def test_missing_stage1_outputs_are_input_errors(tmp_path):
     with pytest.raises(InputError, match="stage-1 output missing"):
         load_stage1(tmp_path)
+
+
+def test_spatial_order_changes_the_memory_layout_not_the_steps():
+    """``spatial_order`` puts stage 2's Gaussians in Morton order: the same losses and pose gradients
+    (up to float32 summation order), and ``kept_indices`` maps each Gaussian back to its input row."""
+    from taichi_gs.refine_model import DepthRefiner
+
+    rng = np.random.default_rng(3)
+    width, height = 64, 48
+    K = np.array([[55.0, 0.0, 31.5], [0.0, 55.0, 23.5], [0.0, 0.0, 1.0]])
+    gx, gy = np.meshgrid(np.linspace(-1.4, 1.4, 36), np.linspace(-1.0, 1.0, 26))
+    means = np.stack([gx, gy, 2.0 + 0.2 * gx], axis=-1).reshape(-1, 3) + rng.normal(0, 0.03, (gx.size, 3))
+    means = means[rng.permutation(len(means))]  # hash order, as a fused cloud comes
+    logits = rng.normal(1.5, 1.0, len(means))
+    target = np.full((height, width), 2.05)
+    runs = []
+    for ordered in (False, True):
+        model = DepthRefiner(means, logits, scale=0.04, K=K, width=width, height=height, spatial_order=ordered)
+        steps = [model.step([target], [np.eye(4)], lambda_depth=1.0, lambda_coverage=0.3, lambda_opacity=0.01,
+                            lrs={"means": 1e-3, "opacity_logits": 0.05}) for _ in range(3)]
+        assert model.prune(0.9) > 0
+        runs.append((model, steps))
+    (plain, plain_steps), (ordered, ordered_steps) = runs
+    kept = ordered.kept_indices()
+    assert not np.array_equal(np.sort(kept), kept)
+    for (values_a, grads_a), (values_b, grads_b) in zip(plain_steps, ordered_steps):
+        for name in values_a:
+            np.testing.assert_allclose(values_b[name], values_a[name], rtol=1e-4)
+        np.testing.assert_allclose(grads_b[0], grads_a[0], rtol=1e-3, atol=1e-6 * np.abs(grads_a[0]).max())
+    back = np.argsort(kept)  # the ordered model's rows in input order
+    np.testing.assert_array_equal(kept[back], plain.kept_indices())
+    np.testing.assert_allclose(ordered.means()[back], plain.means(), atol=1e-5)
+    np.testing.assert_allclose(ordered.opacity_logits()[back], plain.opacity_logits(), atol=1e-4)

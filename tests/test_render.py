@@ -274,6 +274,40 @@ def test_device_api_views_accumulate_gradients() -> None:
     np.testing.assert_allclose(views[1].depth.to_numpy(), ref[1], atol=2e-5)
 
 
+def test_depth_only_render_matches_the_full_render() -> None:
+    """``with_colour=False`` (stage 2's renders): the same depth, alpha, parameter and pose gradients
+    as a full render, in float64, with rgb black; a colour gradient for such a view is refused."""
+    import taichi as ti
+
+    from taichi_gs.kernels.splat import to_device
+
+    scene = make_scene(21, n=50, n_sh=4, dense=30)
+    _, d_depth, d_alpha = loss_weights(22)
+    gs = DeviceGaussians.from_numpy(*scene, dtype=ti.f64)
+    rast = Rasterizer(ti.f64)
+    g_depth, g_alpha = to_device(d_depth, ti.f64), to_device(d_alpha, ti.f64)
+    results = []
+    for with_colour in (True, False):
+        view = rast.forward(gs, Camera(K, POSE, WIDTH, HEIGHT), background=BACKGROUND, with_colour=with_colour)
+        gs.zero_grad()
+        pose = rast.backward(gs, view, d_depth=g_depth, d_alpha=g_alpha)
+        results.append((view.rgb.to_numpy(), view.depth.to_numpy(), view.transmittance.to_numpy(), pose,
+                        gs.download(grads=True)))
+    (rgb, depth, trans, pose, grads), (rgb_d, depth_d, trans_d, pose_d, grads_d) = results
+    assert np.abs(rgb).max() > 0.1 and not rgb_d.any()
+    assert (trans < 0.9).mean() > 0.3  # the scene covers the image
+    np.testing.assert_allclose(depth_d, depth, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(trans_d, trans, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(pose_d, pose, rtol=1e-10, atol=1e-12)
+    assert np.abs(pose).max() > 1e-3
+    for name in ("means", "quats", "log_scales", "opacity_logits"):
+        assert np.abs(grads[name]).max() > 1e-6, name
+        np.testing.assert_allclose(grads_d[name], grads[name], rtol=1e-10, atol=1e-12)
+    assert not grads_d["colors"].any()
+    with pytest.raises(ValueError, match="without colour"):
+        rast.backward(gs, view, d_rgb=to_device(np.ones((HEIGHT, WIDTH, 3)), ti.f64))
+
+
 CUDA_SCRIPT = """
 import sys
 sys.path.insert(0, {tests!r})

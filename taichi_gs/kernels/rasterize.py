@@ -120,10 +120,11 @@ def make(dt) -> SimpleNamespace:
     def blend_tile_forward(
         t, tiles_x, width, height, tile_start: Array, entries: Array, bg,
         state: Array, out_rgb: Array, out_depth: Array, out_trans: Array,
-        out_last: Array,
+        out_last: Array, with_colour: ti.template(),
     ):
         """Blend tile t front to back. ``state[v, u]`` holds the running (T, r, g, b, depth,
-        last) of the pixel, T negated once the pixel is finished."""
+        last) of the pixel, T negated once the pixel is finished. Without ``with_colour`` (static) the
+        colour sums are skipped and ``out_rgb`` is written black."""
         box = tile_pixels(t, tiles_x, width, height)
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
             state[v, u, F_TRANS] = 1.0
@@ -157,15 +158,19 @@ def make(dt) -> SimpleNamespace:
                                     active -= 1
                                 else:
                                     w = alpha * trans
-                                    for c in ti.static(range(3)):
-                                        state[v, u, F_RGB + c] = state[v, u, F_RGB + c] + w * color[c]
+                                    if ti.static(with_colour):
+                                        for c in ti.static(range(3)):
+                                            state[v, u, F_RGB + c] = state[v, u, F_RGB + c] + w * color[c]
                                     state[v, u, F_DEPTH] = state[v, u, F_DEPTH] + w * depth
                                     state[v, u, F_TRANS] = next_trans
                                     state[v, u, F_LAST] = local
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
             trans = ti.abs(state[v, u, F_TRANS])
             for c in ti.static(range(3)):
-                out_rgb[v, u, c] = state[v, u, F_RGB + c] + trans * bg[c]
+                if ti.static(with_colour):
+                    out_rgb[v, u, c] = state[v, u, F_RGB + c] + trans * bg[c]
+                else:
+                    out_rgb[v, u, c] = 0.0
             out_depth[v, u] = state[v, u, F_DEPTH]
             out_trans[v, u] = trans
             out_last[v, u] = ti.cast(state[v, u, F_LAST], ti.i32)
@@ -174,11 +179,12 @@ def make(dt) -> SimpleNamespace:
     def blend_tile_backward(
         t, tiles_x, width, height, tile_start: Array, order: Array, entries: Array, bg,
         out_trans: Array, out_last: Array, d_rgb: Array, d_depth: Array,
-        d_alpha: Array, state: Array, slot_grad: Array,
+        d_alpha: Array, state: Array, slot_grad: Array, with_colour: ti.template(),
     ):
         """Write dL/d(screen record) of every slot of tile t into slot_grad[slot, :]. ``state[v, u]``
         packs the pixel's final T, running T, colour/depth accumulated behind, its image
-        gradients and last contributor (see the B_* columns)."""
+        gradients and last contributor (see the B_* columns). Without ``with_colour`` (static, a
+        depth-and-alpha render) the colour terms are skipped and the slots' colour gradients are 0."""
         box = tile_pixels(t, tiles_x, width, height)
         last = -1
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
@@ -222,20 +228,21 @@ def make(dt) -> SimpleNamespace:
                                 inv_keep = 1.0 / (1.0 - alpha)  # T_i = T_{i+1} / (1 - alpha_i)
                                 trans = state[v, u, B_TRANS] * inv_keep
                                 w = alpha * trans
-                                g_rgb = vec3(state[v, u, B_GRAD], state[v, u, B_GRAD + 1], state[v, u, B_GRAD + 2])
                                 g_depth = state[v, u, B_GRAD + 3]
-                                behind = vec3(
-                                    state[v, u, B_BEHIND], state[v, u, B_BEHIND + 1], state[v, u, B_BEHIND + 2]
-                                )
                                 behind_depth = state[v, u, B_BEHIND + 3]
                                 g_alpha = (
-                                    g_rgb.dot(color * trans - (behind + final_trans * bg) * inv_keep)
-                                    + g_depth * (depth * trans - behind_depth * inv_keep)
+                                    g_depth * (depth * trans - behind_depth * inv_keep)
                                     + state[v, u, B_GRAD + 4] * final_trans * inv_keep
                                 )
-                                for c in ti.static(range(3)):
-                                    acc[P_COLOR + c] += g_rgb[c] * w
-                                    state[v, u, B_BEHIND + c] = behind[c] + color[c] * w
+                                if ti.static(with_colour):
+                                    g_rgb = vec3(state[v, u, B_GRAD], state[v, u, B_GRAD + 1], state[v, u, B_GRAD + 2])
+                                    behind = vec3(
+                                        state[v, u, B_BEHIND], state[v, u, B_BEHIND + 1], state[v, u, B_BEHIND + 2]
+                                    )
+                                    g_alpha += g_rgb.dot(color * trans - (behind + final_trans * bg) * inv_keep)
+                                    for c in ti.static(range(3)):
+                                        acc[P_COLOR + c] += g_rgb[c] * w
+                                        state[v, u, B_BEHIND + c] = behind[c] + color[c] * w
                                 acc[P_DEPTH] += g_depth * w
                                 state[v, u, B_BEHIND + 3] = behind_depth + depth * w
                                 state[v, u, B_TRANS] = trans

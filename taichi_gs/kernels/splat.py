@@ -11,6 +11,8 @@ size buffers (grown geometrically, never shrunk; ndarray arguments never trigger
 Per backward: one launch (tile replay, per-Gaussian reduction + projection backward, pose sum).
 That is the CPU path (one thread per tile); on GPU backends the Rasterizer hands both passes to
 :class:`~taichi_gs.kernels.raster_gpu.GpuPipeline` (block per tile, thread per pixel).
+``forward(..., with_colour=False)`` blends depth and alpha only (stage 2): the CPU path skips the
+colour sums, forward and backward; the GPU path renders colour anyway.
 """
 
 import functools
@@ -165,12 +167,13 @@ def _kernels(dt) -> SimpleNamespace:
         out_depth: fnd(2),  # out (H, W): alpha-blended camera z
         out_trans: fnd(2),  # out (H, W): final transmittance (1 - alpha)
         out_last: ind(2),  # out (H, W): index within its tile of the last Gaussian blended (-1: none)
+        with_colour: ti.template(),  # False: depth and alpha only (out_rgb black)
     ):
         for i in range(n_tiles * spread):
             if i % spread == 0:
                 blend_f.blend_tile_forward(
                     i // spread, tiles_x, width, height, tile_start, entries, bg, state,
-                    out_rgb, out_depth, out_trans, out_last,
+                    out_rgb, out_depth, out_trans, out_last, with_colour,
                 )
 
     @ti.kernel
@@ -209,12 +212,13 @@ def _kernels(dt) -> SimpleNamespace:
         pose_chunks: fnd(2),  # scratch (N / POSE_CHUNK + 1, 6)
         pose_grad: fnd(1),  # out (6,): dL/d left perturbation of the camera, [translation, rotation]
         isotropic: ti.template(),
+        with_colour: ti.template(),  # as the forward was rendered
     ):
         for i in range(n_tiles * spread):
             if i % spread == 0:
                 blend_f.blend_tile_backward(
                     i // spread, tiles_x, width, height, tile_start, order, entries, bg,
-                    out_trans, out_last, d_rgb, d_depth, d_alpha, state, slot_grad,
+                    out_trans, out_last, d_rgb, d_depth, d_alpha, state, slot_grad, with_colour,
                 )
         for g in range(n):
             pose = proj_f.slots_vjp(
@@ -354,6 +358,7 @@ class View:
         self.rgb = self.depth = self.transmittance = self.last = None
         self.camera: Camera | None = None
         self.background = np.zeros(3)
+        self.with_colour = True  # False: a depth-and-alpha render (rgb black, no colour gradients)
         self.n = self.n_slots = 0
         self.size = (0, 0)
 
@@ -437,12 +442,14 @@ class Rasterizer:
 
     def forward(
         self, gaussians: DeviceGaussians, camera: Camera, view: int = 0, background=(0.0, 0.0, 0.0),
-        timings: dict | None = None,
+        timings: dict | None = None, with_colour: bool = True,
     ) -> View:
         """Render ``camera`` into view buffer ``view`` and return it.
 
         ``timings``: when a dict is given, each phase is synchronised and its seconds added under
-        "project", "sort" and "blend" (for benchmarks; costs a few syncs)."""
+        "project", "sort" and "blend" (for benchmarks; costs a few syncs). ``with_colour=False``
+        renders depth and alpha only (stage 2): the CPU path skips the colour sums and leaves ``rgb``
+        black, and the view's backward takes no colour gradient (GPU backends render colour anyway)."""
         clock = _PhaseClock(timings)
         if gaussians.dtype != self.dtype:
             raise ValueError("gaussians and rasterizer use different float types")
@@ -455,6 +462,7 @@ class Rasterizer:
             bg = ti.Vector([float(b) for b in background], dt=self.dtype)
             self.gpu.forward(v, gaussians, cam, intr, width, height, bg, clock)
             v.camera, v.background, v.n = camera, np.asarray(background, dtype=np.float64), n
+            v.with_colour = with_colour
             return v
         v.proj = _grown(v.proj, n, self.dtype, (P_WIDTH,))
         v.rect = _grown(v.rect, n, ti.i32, (4,))
@@ -483,10 +491,11 @@ class Rasterizer:
         bg = ti.Vector([float(b) for b in background], dt=self.dtype)
         self.k.blend(
             tiles_x, n_tiles, width, height, v.tile_start, v.entries, bg, self._state(F_WIDTH, width, height),
-            v.rgb, v.depth, v.transmittance, v.last,
+            v.rgb, v.depth, v.transmittance, v.last, bool(with_colour),
         )
         clock("blend")
         v.camera, v.background, v.n, v.n_slots = camera, np.asarray(background, dtype=np.float64), n, n_slots
+        v.with_colour = with_colour
         return v
 
     def backward(self, gaussians: DeviceGaussians, view: View, d_rgb=None, d_depth=None, d_alpha=None) -> np.ndarray:
@@ -495,6 +504,8 @@ class Rasterizer:
         n = gaussians.n
         if n != view.n:
             raise ValueError("the Gaussians changed size since this view was rendered")
+        if d_rgb is not None and not view.with_colour:
+            raise ValueError("a colour gradient for a view rendered without colour (with_colour=False)")
         d_rgb = self._zero_if_none(d_rgb, (height, width, 3))
         d_depth = self._zero_if_none(d_depth, (height, width))
         d_alpha = self._zero_if_none(d_alpha, (height, width))
@@ -520,7 +531,7 @@ class Rasterizer:
             view.transmittance, view.last, d_rgb, d_depth, d_alpha,
             self._state(B_WIDTH, width, height), s["slot_grad"],
             g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["colors"],
-            s["pose_part"], s["pose_chunks"], s["pose_grad"], gaussians.isotropic,
+            s["pose_part"], s["pose_chunks"], s["pose_grad"], gaussians.isotropic, bool(view.with_colour),
         )
         return s["pose_grad"].to_numpy().astype(np.float64)
 

@@ -164,8 +164,10 @@ def _kernels(dt) -> SimpleNamespace:
     @ti.func
     def pixel_backward(u, v, grad_out: ti.template(), anchor_rgb: ti.template(), z_in: ti.template(), view, R, t,
                        intr, margin, weight, grad_anchor: ti.template(), lane, private: ti.template()):
-        """Scatter target pixel (u, v)'s share of dL/d anchor colour (into ``grad_anchor[lane]`` without
-        atomics when ``private``, else atomically into ``grad_anchor``) and return its dL/d epsilon."""
+        """Scatter target pixel (u, v)'s share of dL/d anchor colour (without atomics into lane ``lane`` of
+        ``grad_anchor``, the flat (lanes, Hp, Wp, 3) copies, when ``private``; else atomically into
+        ``grad_anchor`` (Hp, Wp, 3)) and return its dL/d epsilon. The taps are read first and written in a
+        second pass, four runs of 12 consecutive floats from one base index each."""
         hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
         X, sx, sy = land(u, v, z_in[view, v, u], R, t, intr, margin)
         x0, fx, inside_x = cell(sx, wp)
@@ -183,12 +185,17 @@ def _kernels(dt) -> SimpleNamespace:
                 dot = g.dot(colour)
                 g_sx += dwx[a] * wy[b] * dot
                 g_sy += wx[a] * dwy[b] * dot
+        for b in ti.static(range(TAPS)):
+            y = y0 + b
+            g_row = wy[b] * g
+            base = ((lane * hp + y) * wp + x0) * 3  # the private copy's flat index of tap (x0, y)
+            for a in ti.static(range(TAPS)):
                 for c in ti.static(range(3)):
-                    share = wx[a] * wy[b] * g[c]
-                    if ti.static(private):
-                        grad_anchor[lane, y, x, c] = grad_anchor[lane, y, x, c] + share
+                    share = wx[a] * g_row[c]
+                    if ti.static(private):  # not +=, which Taichi compiles to an atomic add
+                        grad_anchor[base + 3 * a + c] = grad_anchor[base + 3 * a + c] + share
                     else:
-                        ti.atomic_add(grad_anchor[y, x, c], share)
+                        ti.atomic_add(grad_anchor[y, x0 + a, c], share)
         pose = ti.Vector.zero(dt, N_POSE)
         if X[2] > MIN_Z:
             g_sx *= inside_x
@@ -234,7 +241,7 @@ def _kernels(dt) -> SimpleNamespace:
         margin: ti.i32,
         weight: dt,
         lanes: ti.i32,
-        private: ti.types.ndarray(dtype=dt, ndim=4),  # scratch (lanes, Hp, Wp, 3), zero on entry and on exit
+        private: ti.types.ndarray(dtype=dt, ndim=1),  # scratch (lanes, Hp, Wp, 3) flat, zero on entry and on exit
         grad_anchor: img3,  # out, added to (Hp, Wp, 3)
         rows: img2,
     ):
@@ -258,8 +265,9 @@ def _kernels(dt) -> SimpleNamespace:
                     for c in ti.static(range(3)):
                         total = grad_anchor[y, x, c]
                         for lane in range(lanes):
-                            total += private[lane, y, x, c]
-                            private[lane, y, x, c] = 0.0
+                            k = ((lane * grad_anchor.shape[0] + y) * grad_anchor.shape[1] + x) * 3 + c
+                            total += private[k]
+                            private[k] = 0.0
                         grad_anchor[y, x, c] = total
 
     return SimpleNamespace(forward=forward, backward_atomic=backward_atomic, backward_lanes=backward_lanes)
@@ -331,9 +339,10 @@ def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, target
 
 
 def _private_gradients(lanes: int, shape: tuple, dtype) -> ti.Ndarray:
-    """The CPU backward's per-lane gradient copies (zero between calls: the kernel zeroes what it adds)."""
+    """The CPU backward's per-lane gradient copies, flat (lanes x Hp x Wp x 3: one index computation per run
+    of taps), zero between calls: the kernel zeroes what it adds."""
     key = f"{lanes} {shape} {dtype}"
     if key not in _lane_buffers:
-        _lane_buffers[key] = ti.ndarray(dtype, (lanes,) + shape)
+        _lane_buffers[key] = ti.ndarray(dtype, (lanes * int(np.prod(shape)),))
         _lane_buffers[key].fill(0.0)
     return _lane_buffers[key]

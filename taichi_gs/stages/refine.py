@@ -108,12 +108,13 @@ class RefineConfig:
     converge_rel_tol: float = 0.02
     converge_pose_m: float = 0.0005
     converge_pose_deg: float = 0.05
+    spatial_order: bool = False  # [ours] Gaussians in Morton order of their centres (memory layout only)
 
 
 PRESETS = {
     "paper": RefineConfig(),
     "fast": RefineConfig(iterations_per_frame=60, prune_every_per_frame=20, reset_every_per_frame=40,
-                         checkpoint_every=200),
+                         checkpoint_every=200, spatial_order=True),
 }
 
 
@@ -192,7 +193,8 @@ def run_refine(
     extent = float(np.linalg.norm(initial_poses[:, :3, 3] - initial_poses[:, :3, 3].mean(axis=0), axis=1).max())
     extent = max(extent * 1.1, 1.0)
     model = DepthRefiner(splats.means, splats.opacity_logits, scale=config.voxel_size / 2, K=K, width=width,
-                         height=height, free_scale=config.free_scale, min_alpha=config.min_alpha)
+                         height=height, free_scale=config.free_scale, min_alpha=config.min_alpha,
+                         spatial_order=config.spatial_order)
     poses = initial_poses.copy()
     pose_adam = RowAdam(n_frames, (6,), eps=1e-12)
     history: list[dict[str, float]] = []
