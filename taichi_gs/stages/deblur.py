@@ -409,12 +409,11 @@ def run_deblur(
         rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
                       quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
                       colors=config.lr_colors)
-        k = _views(offsets[frame], frames.K[0, 0], frames.median_depth[frame], config, fraction)
+        k, anchors = _exposure_sampling(offsets[frame], frames, frame, config, fraction)
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
                           k, config.lambda_dssim, config.lambda_depth, rates,
                           colours[frame] if config.colour_affine else None,
-                          anchors=_anchors(offsets[frame], frames.K[0, 0], frames.median_depth[frame], config, k),
-                          fallback_depth=frames.median_depth[frame])
+                          anchors=anchors, fallback_depth=frames.median_depth[frame])
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
@@ -477,6 +476,14 @@ def _views(d: np.ndarray, focal: float, depth: float, config: DeblurConfig, frac
         return config.k
     step = config.max_step_px * (config.early_step_scale if fraction < config.early_views_fraction else 1.0)
     return views_for_span(exposure_px(d[0], d[1], focal, depth), step, config.k_min, config.k)
+
+
+def _exposure_sampling(d: np.ndarray, frames: _Frames, frame: int, config: DeblurConfig,
+                       fraction: float = 1.0) -> tuple[int, int]:
+    """(virtual views, anchor renders) of one step on ``frame``'s exposure ``d`` (:func:`_views`, :func:`_anchors`)."""
+    focal, depth = frames.K[0, 0], frames.median_depth[frame]
+    k = _views(d, focal, depth, config, fraction)
+    return k, _anchors(d, focal, depth, config, k)
 
 
 def warp_margin(config: DeblurConfig) -> int:
@@ -602,11 +609,10 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
     colour = IDENTITY.copy()
     guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
     for it in range(config.test_pose_iterations):
-        k = _views(d, frames.K[0, 0], frames.median_depth[frame], config)
+        k, anchors = _exposure_sampling(d, frames, frame, config)
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], k,
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
-                          anchors=_anchors(d, frames.K[0, 0], frames.median_depth[frame], config, k),
-                          fallback_depth=frames.median_depth[frame])
+                          anchors=anchors, fallback_depth=frames.median_depth[frame])
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         d = exposure_step(d, np.stack([step.grad_start, step.grad_end]))
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
