@@ -4,14 +4,15 @@ frame's exposure offsets to its blurred input moves a deliberately wrong exposur
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from taichi_gs.deblur_model import BlurScene
-from taichi_gs.geometry import se3_exp
-from taichi_gs.geometry import virtual_pose
+from taichi_gs.geometry import invert, se3_exp, se3_log, virtual_pose
 from taichi_gs.splats import Splats
-from taichi_gs.stages.deblur import DeblurConfig, _Frames, _refine_test_exposure
+from taichi_gs.stages.deblur import DeblurConfig, _Frames, _refine_test_exposure, neighbours_mid_shift
 
 WIDTH, HEIGHT = 48, 40
 K = np.array([[40.0, 0.0, 23.5], [0.0, 40.0, 19.5], [0.0, 0.0, 1.0]])
@@ -101,3 +102,44 @@ def test_rprop_fit_with_a_zero_colour_rate_keeps_the_colour():
     refined, colour = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
     np.testing.assert_array_equal(colour, np.eye(3, 4))
     assert not np.array_equal(refined, start)
+
+
+def test_neighbours_mid_shift_is_the_mean_correction_of_the_nearest_training_frames():
+    """[ours] The shift is the mean of (d_s + d_e) / 2 over the nearest training frame on each side that
+    exists (skipping held-out neighbours), and zero when no frame trains."""
+    rng = np.random.default_rng(3)
+    offsets = rng.normal(scale=0.01, size=(7, 2, 6))
+    mid = 0.5 * (offsets[:, 0] + offsets[:, 1])
+    train = [0, 2, 5]
+    np.testing.assert_allclose(neighbours_mid_shift(offsets, train, 1), 0.5 * (mid[0] + mid[2]))
+    np.testing.assert_allclose(neighbours_mid_shift(offsets, train, 3), 0.5 * (mid[2] + mid[5]))
+    np.testing.assert_allclose(neighbours_mid_shift(offsets, train, 4), 0.5 * (mid[2] + mid[5]))
+    np.testing.assert_allclose(neighbours_mid_shift(offsets, train, 6), mid[5])  # none after it
+    np.testing.assert_array_equal(neighbours_mid_shift(offsets, [], 3), np.zeros(6))
+
+
+@pytest.mark.parametrize("from_neighbours", [False, True])
+def test_held_out_frames_start_where_their_training_neighbours_moved(tmp_path, from_neighbours):
+    """[ours] ``test_fit_from_neighbours``: with no fit steps, a held-out frame's mid-exposure pose is its
+    stage-2 pose moved by its training neighbours' mean learned correction (off: the stage-2 pose itself)."""
+    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.stages.deblur import PRESETS, load_stage2, run_deblur
+
+    synth = pytest.importorskip("taichi_gs.synth")
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    write_refine_outputs(sequence, tmp_path / "run", voxel=0.06)
+    config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=30, densify_from=10,
+                                 densify_until=20, densify_every=10, exposure_from=0, test_pose_iterations=0,
+                                 test_fit_from_neighbours=from_neighbours)
+    result = run_deblur(sequence, tmp_path / "run", config)
+    base, _ = load_stage2(tmp_path / "run", len(sequence))
+    learned = np.stack([[se3_log(invert(base[j]) @ result.mid_poses[j])] * 2 for j in range(len(sequence))])
+    assert result.test == [1, 4]
+    for frame in result.test:
+        shift = neighbours_mid_shift(learned, result.train, frame)
+        assert np.linalg.norm(shift) > 1e-5  # the neighbours did learn a correction
+        expected = base[frame] @ se3_exp(shift) if from_neighbours else base[frame]
+        np.testing.assert_allclose(result.mid_poses[frame], expected, atol=1e-6)
