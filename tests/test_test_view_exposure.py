@@ -12,7 +12,9 @@ import pytest
 from taichi_gs.deblur_model import BlurScene
 from taichi_gs.geometry import invert, se3_exp, se3_log, virtual_pose
 from taichi_gs.splats import Splats
-from taichi_gs.stages.deblur import DeblurConfig, _Frames, _refine_test_exposure, neighbours_mid_shift
+from taichi_gs.stages.deblur import (
+    PRESETS, DeblurConfig, _Frames, _refine_test_exposure, load_stage2, neighbours_mid_shift, run_deblur,
+)
 
 WIDTH, HEIGHT = 48, 40
 K = np.array([[40.0, 0.0, 23.5], [0.0, 40.0, 19.5], [0.0, 0.0, 1.0]])
@@ -124,7 +126,6 @@ def test_held_out_frames_start_where_their_training_neighbours_moved(tmp_path, f
     stage-2 pose moved by its training neighbours' mean learned correction (off: the stage-2 pose itself)."""
     from taichi_gs.io.sequence import load_sequence
     from taichi_gs.standins import write_refine_outputs
-    from taichi_gs.stages.deblur import PRESETS, load_stage2, run_deblur
 
     synth = pytest.importorskip("taichi_gs.synth")
     synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
