@@ -20,26 +20,28 @@ from taichi_gs.io.sequence import load_sequence
 from taichi_gs.io.trajectory import read_tum
 from taichi_gs.synth import SynthConfig, generate
 
-# Small enough for a few seconds per stage on 2 cores, long enough to be caught mid-stage.
+# Small enough for a few seconds per stage on 2 cores, long enough to be caught mid-stage (each stage checkpoints
+# at least twice); iterations_per_view = 0 keeps stage 3 at its 80 iterations (the fast preset would raise them).
 TINY_CONFIG = """
 [pose]
 icp_from_prior = false
 pose_graph = false
 
 [refine]
-iterations_per_frame = 40
-prune_every_per_frame = 20
-reset_every_per_frame = 30
+iterations_per_frame = 20
+prune_every_per_frame = 10
+reset_every_per_frame = 15
 checkpoint_every = 20
 
 [deblur]
-iterations = 160
+iterations = 80
+iterations_per_view = 0
 k = 3
 checkpoint_every = 20
 test_pose_iterations = 3
-densify_from = 40
-densify_until = 120
-densify_every = 40
+densify_from = 20
+densify_until = 60
+densify_every = 20
 """
 # What shows that a stage is under way (and has something to resume from).
 IN_PROGRESS = {"pose": "pose/pairs/000001.json", "refine": "refine/checkpoint.npz", "deblur": "deblur/checkpoint.npz"}
