@@ -101,6 +101,25 @@ def test_dssim_value_and_gradient(images) -> None:
     np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.parametrize("shape", [(4, 7, 3), (11, 12, 1), (12, 30, 3)],
+                         ids=["window-wider-than-image", "one-interior-row", "wide-interior"])
+def test_dssim_near_and_away_from_the_edges_matches_the_reference(shape) -> None:
+    """The kernel skips edge checks away from the edges: images with no, one and many interior rows
+    and columns give the reference's value and gradient, at corners, edges and centre."""
+    rng = np.random.default_rng(5)
+    pred = rng.uniform(0, 1, shape)
+    target = 0.6 * pred + 0.4 * rng.uniform(0, 1, shape)
+    grad = zeros(shape)
+    value = losses.dssim(device(pred), device(target), grad, weight=0.5)
+    assert value == pytest.approx(1 - numpy_ssim(pred, target), rel=1e-10)
+    h, w, c = shape
+    indices = [(v, u, k) for v in {0, h // 2, h - 1} for u in {0, 5, w // 2, w - 6, w - 1} if 0 <= u < w
+               for k in {0, c - 1}]
+    numeric = 0.5 * fd_gradient(lambda x: 1 - numpy_ssim(x, target), pred, indices)
+    analytic = np.array([grad.to_numpy()[i] for i in indices])
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-9)
+
+
 def test_dssim_float32_matches_float64(images) -> None:
     pred, target = images
     g32, g64 = zeros(pred.shape, ti.f32), zeros(pred.shape)

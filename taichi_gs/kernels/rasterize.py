@@ -122,15 +122,16 @@ def make(dt) -> SimpleNamespace:
         state: Array, out_rgb: Array, out_depth: Array, out_trans: Array,
         out_last: Array, with_colour: ti.template(),
     ):
-        """Blend tile t front to back. ``state[v, u]`` holds the running (T, r, g, b, depth,
-        last) of the pixel, T negated once the pixel is finished. Without ``with_colour`` (static) the
-        colour sums are skipped and ``out_rgb`` is written black."""
+        """Blend tile t front to back. ``state`` (flat, F_WIDTH values per pixel of the image) holds the
+        running (T, r, g, b, depth, last) of each pixel, T negated once the pixel is finished. Without
+        ``with_colour`` (static) the colour sums are skipped and ``out_rgb`` is written black."""
         box = tile_pixels(t, tiles_x, width, height)
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            state[v, u, F_TRANS] = 1.0
+            p = (v * width + u) * F_WIDTH
+            state[p + F_TRANS] = 1.0
             for c in ti.static(range(1, F_WIDTH)):
-                state[v, u, c] = 0.0
-            state[v, u, F_LAST] = -1.0
+                state[p + c] = 0.0
+            state[p + F_LAST] = -1.0
         active = (box[2] - box[0] + 1) * (box[3] - box[1] + 1)
         start = tile_start[t]
         for j in range(start, tile_start[t + 1]):
@@ -146,7 +147,8 @@ def make(dt) -> SimpleNamespace:
             for v in range(eb[1], eb[3] + 1):
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
-                    trans = state[v, u, F_TRANS]
+                    p = (v * width + u) * F_WIDTH
+                    trans = state[p + F_TRANS]
                     if trans > 0.0:
                         power = splat_at(sg, u, v)[0]
                         if power >= cutoff:
@@ -154,26 +156,27 @@ def make(dt) -> SimpleNamespace:
                             if alpha >= dt(ALPHA_MIN):
                                 next_trans = trans * (1.0 - alpha)
                                 if next_trans < dt(MIN_TRANSMITTANCE):
-                                    state[v, u, F_TRANS] = -trans
+                                    state[p + F_TRANS] = -trans
                                     active -= 1
                                 else:
                                     w = alpha * trans
                                     if ti.static(with_colour):
                                         for c in ti.static(range(3)):
-                                            state[v, u, F_RGB + c] = state[v, u, F_RGB + c] + w * color[c]
-                                    state[v, u, F_DEPTH] = state[v, u, F_DEPTH] + w * depth
-                                    state[v, u, F_TRANS] = next_trans
-                                    state[v, u, F_LAST] = local
+                                            state[p + F_RGB + c] = state[p + F_RGB + c] + w * color[c]
+                                    state[p + F_DEPTH] = state[p + F_DEPTH] + w * depth
+                                    state[p + F_TRANS] = next_trans
+                                    state[p + F_LAST] = local
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            trans = ti.abs(state[v, u, F_TRANS])
+            p = (v * width + u) * F_WIDTH
+            trans = ti.abs(state[p + F_TRANS])
             for c in ti.static(range(3)):
                 if ti.static(with_colour):
-                    out_rgb[v, u, c] = state[v, u, F_RGB + c] + trans * bg[c]
+                    out_rgb[v, u, c] = state[p + F_RGB + c] + trans * bg[c]
                 else:
                     out_rgb[v, u, c] = 0.0
-            out_depth[v, u] = state[v, u, F_DEPTH]
+            out_depth[v, u] = state[p + F_DEPTH]
             out_trans[v, u] = trans
-            out_last[v, u] = ti.cast(state[v, u, F_LAST], ti.i32)
+            out_last[v, u] = ti.cast(state[p + F_LAST], ti.i32)
 
     @ti.func
     def blend_tile_backward(
@@ -181,22 +184,23 @@ def make(dt) -> SimpleNamespace:
         out_trans: Array, out_last: Array, d_rgb: Array, d_depth: Array,
         d_alpha: Array, state: Array, slot_grad: Array, with_colour: ti.template(),
     ):
-        """Write dL/d(screen record) of every slot of tile t into slot_grad[slot, :]. ``state[v, u]``
-        packs the pixel's final T, running T, colour/depth accumulated behind, its image
-        gradients and last contributor (see the B_* columns). Without ``with_colour`` (static, a
+        """Write dL/d(screen record) of every slot of tile t into slot_grad[slot, :]. ``state`` (flat,
+        B_WIDTH values per pixel of the image) packs each pixel's final T, running T, colour/depth
+        accumulated behind, its image gradients and last contributor (see the B_* columns). Without ``with_colour`` (static, a
         depth-and-alpha render) the colour terms are skipped and the slots' colour gradients are 0."""
         box = tile_pixels(t, tiles_x, width, height)
         last = -1
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            state[v, u, B_FINAL] = out_trans[v, u]
-            state[v, u, B_TRANS] = out_trans[v, u]
+            p = (v * width + u) * B_WIDTH
+            state[p + B_FINAL] = out_trans[v, u]
+            state[p + B_TRANS] = out_trans[v, u]
             for c in ti.static(range(4)):
-                state[v, u, B_BEHIND + c] = 0.0
+                state[p + B_BEHIND + c] = 0.0
             for c in ti.static(range(3)):
-                state[v, u, B_GRAD + c] = d_rgb[v, u, c]
-            state[v, u, B_GRAD + 3] = d_depth[v, u]
-            state[v, u, B_GRAD + 4] = d_alpha[v, u]
-            state[v, u, B_LAST] = ti.cast(out_last[v, u], dt)
+                state[p + B_GRAD + c] = d_rgb[v, u, c]
+            state[p + B_GRAD + 3] = d_depth[v, u]
+            state[p + B_GRAD + 4] = d_alpha[v, u]
+            state[p + B_LAST] = ti.cast(out_last[v, u], dt)
             last = ti.max(last, out_last[v, u])
         start = tile_start[t]
         for j in range(start + last + 1, tile_start[t + 1]):
@@ -217,35 +221,36 @@ def make(dt) -> SimpleNamespace:
             for v in range(eb[1], eb[3] + 1):
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
-                    if local <= state[v, u, B_LAST]:
+                    p = (v * width + u) * B_WIDTH
+                    if local <= state[p + B_LAST]:
                         s = splat_at(sg, u, v)
                         power = s[0]
                         if power >= cutoff:
                             gauss = ti.exp(power)
                             alpha = ti.min(dt(MAX_ALPHA), opacity * gauss)
                             if alpha >= dt(ALPHA_MIN):
-                                final_trans = state[v, u, B_FINAL]
+                                final_trans = state[p + B_FINAL]
                                 inv_keep = 1.0 / (1.0 - alpha)  # T_i = T_{i+1} / (1 - alpha_i)
-                                trans = state[v, u, B_TRANS] * inv_keep
+                                trans = state[p + B_TRANS] * inv_keep
                                 w = alpha * trans
-                                g_depth = state[v, u, B_GRAD + 3]
-                                behind_depth = state[v, u, B_BEHIND + 3]
+                                g_depth = state[p + B_GRAD + 3]
+                                behind_depth = state[p + B_BEHIND + 3]
                                 g_alpha = (
                                     g_depth * (depth * trans - behind_depth * inv_keep)
-                                    + state[v, u, B_GRAD + 4] * final_trans * inv_keep
+                                    + state[p + B_GRAD + 4] * final_trans * inv_keep
                                 )
                                 if ti.static(with_colour):
-                                    g_rgb = vec3(state[v, u, B_GRAD], state[v, u, B_GRAD + 1], state[v, u, B_GRAD + 2])
+                                    g_rgb = vec3(state[p + B_GRAD], state[p + B_GRAD + 1], state[p + B_GRAD + 2])
                                     behind = vec3(
-                                        state[v, u, B_BEHIND], state[v, u, B_BEHIND + 1], state[v, u, B_BEHIND + 2]
+                                        state[p + B_BEHIND], state[p + B_BEHIND + 1], state[p + B_BEHIND + 2]
                                     )
                                     g_alpha += g_rgb.dot(color * trans - (behind + final_trans * bg) * inv_keep)
                                     for c in ti.static(range(3)):
                                         acc[P_COLOR + c] += g_rgb[c] * w
-                                        state[v, u, B_BEHIND + c] = behind[c] + color[c] * w
+                                        state[p + B_BEHIND + c] = behind[c] + color[c] * w
                                 acc[P_DEPTH] += g_depth * w
-                                state[v, u, B_BEHIND + 3] = behind_depth + depth * w
-                                state[v, u, B_TRANS] = trans
+                                state[p + B_BEHIND + 3] = behind_depth + depth * w
+                                state[p + B_TRANS] = trans
                                 if opacity * gauss <= dt(MAX_ALPHA):
                                     acc[P_OPACITY] += g_alpha * gauss
                                     g_power = g_alpha * alpha

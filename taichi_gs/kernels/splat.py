@@ -162,7 +162,7 @@ def _kernels(dt) -> SimpleNamespace:
         tile_start: ind(1),  # (T + 1,)
         entries: fnd(2),  # (S, E_WIDTH)
         bg: vec3,  # background colour
-        state: fnd(3),  # scratch (H, W, F_WIDTH): per-pixel running sums
+        state: fnd(1),  # scratch (H W F_WIDTH,): per-pixel running sums
         out_rgb: fnd(3),  # out (H, W, 3)
         out_depth: fnd(2),  # out (H, W): alpha-blended camera z
         out_trans: fnd(2),  # out (H, W): final transmittance (1 - alpha)
@@ -201,7 +201,7 @@ def _kernels(dt) -> SimpleNamespace:
         d_rgb: fnd(3),  # (H, W, 3) dL/d colour
         d_depth: fnd(2),  # (H, W) dL/d blended depth
         d_alpha: fnd(2),  # (H, W) dL/d alpha
-        state: fnd(3),  # scratch (H, W, B_WIDTH)
+        state: fnd(1),  # scratch (H W B_WIDTH,)
         slot_grad: fnd(2),  # scratch (S, N_SLOT_GRADS): screen-space gradient of each slot
         d_means: fnd(2),  # out, added to (N, 3)
         d_quats: fnd(2),  # out, added to (N, 4)
@@ -536,10 +536,11 @@ class Rasterizer:
         return s["pose_grad"].to_numpy().astype(np.float64)
 
     def _state(self, columns: int, width: int, height: int) -> ti.Ndarray:
-        """Per-pixel scratch of the blending passes, shared by all views."""
+        """Per-pixel scratch of the blending passes, shared by all views: flat, ``columns`` values per pixel in
+        row-major pixel order (one index computation per pixel in the blending loops)."""
         key = ("state", columns, width, height)
         if key not in self._scratch:
-            self._scratch[key] = ti.ndarray(self.dtype, (height, width, columns))
+            self._scratch[key] = ti.ndarray(self.dtype, (height * width * columns,))
         return self._scratch[key]
 
     def _zero_if_none(self, arr, shape: tuple):
