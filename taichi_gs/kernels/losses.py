@@ -130,29 +130,21 @@ def _kernels(dt) -> SimpleNamespace:
         return m
 
     @ti.func
-    def blur_row(src: ti.template(), base, u, w, q: ti.template(), checked: ti.template()):
-        """Horizontal window sums of the q values at flat index ``base`` of column u in ``src`` (columns q
-        apart: one channel's records)."""
-        acc = ti.Vector.zero(dt, q)
-        for i in ti.static(range(taps)):
-            x = u + i - SSIM_RADIUS
-            if not ti.static(checked) or 0 <= x < w:
-                at = base + (i - SSIM_RADIUS) * q
-                for j in ti.static(range(q)):
-                    acc[j] += dt(WINDOW[i]) * src[at + j]
-        return acc
+    def record(v, u, k, w, c: ti.template(), q: ti.template()):
+        """Flat index of pixel (v, u)'s channel-k record of q values in a scratch array (row-major pixels)."""
+        return ((v * w + u) * c + k) * q
 
     @ti.func
-    def blur_col(src: ti.template(), base, stride, v, h, q: ti.template(), checked: ti.template()):
-        """Vertical window sums of the q values at flat index ``base`` of row v in ``src`` (rows ``stride``
-        apart)."""
+    def window_sum(src: ti.template(), base, stride, at, n, q: ti.template(), checked: ti.template()):
+        """Window sums of the q values at flat index ``base`` in ``src``, the window along an axis of n
+        indices centred on index ``at``, its neighbours ``stride`` apart (a row: c q; a column: w c q)."""
         acc = ti.Vector.zero(dt, q)
         for i in ti.static(range(taps)):
-            y = v + i - SSIM_RADIUS
-            if not ti.static(checked) or 0 <= y < h:
-                at = base + (i - SSIM_RADIUS) * stride
+            x = at + i - SSIM_RADIUS
+            if not ti.static(checked) or 0 <= x < n:
+                tap = base + (i - SSIM_RADIUS) * stride
                 for j in ti.static(range(q)):
-                    acc[j] += dt(WINDOW[i]) * src[at + j]
+                    acc[j] += dt(WINDOW[i]) * src[tap + j]
         return acc
 
     @ti.func
@@ -168,7 +160,7 @@ def _kernels(dt) -> SimpleNamespace:
                 else:
                     m = row_moments(pred, target, v, u, k, w, True)
                 for j in ti.static(range(5)):
-                    moments[((v * w + u) * c + k) * 5 + j] = m[j]
+                    moments[record(v, u, k, w, c, 5) + j] = m[j]
 
     @ti.func
     def ssim_row(moments: ti.template(), mask: ti.template(), partial: ti.template(), v, weight, total,
@@ -181,7 +173,7 @@ def _kernels(dt) -> SimpleNamespace:
         for u in range(w):
             scale = norm * mask[v, u]
             for k in ti.static(range(c)):
-                m = blur_col(moments, ((v * w + u) * c + k) * 5, w * c * 5, v, h, 5, checked)
+                m = window_sum(moments, record(v, u, k, w, c, 5), w * c * 5, v, h, 5, checked)
                 mu1, mu2 = m[0], m[1]
                 s11, s22, s12 = m[2] - mu1 * mu1, m[3] - mu2 * mu2, m[4] - mu1 * mu2
                 a1, a2 = 2 * mu1 * mu2 + dt(SSIM_C1), 2 * s12 + dt(SSIM_C2)
@@ -189,28 +181,26 @@ def _kernels(dt) -> SimpleNamespace:
                 inv = 1.0 / (b1 * b2)  # one division: 1 / b1 = b2 inv, 1 / b2 = b1 inv
                 ssim = a1 * a2 * inv
                 acc += mask[v, u] * ssim
-                at = ((k * h + v) * w + u) * 3  # channel-major, so a row's records of one channel are adjacent
+                at = record(v, u, k, w, c, 3)
                 partial[at] = scale * inv * (2 * mu2 * (a2 - a1) - 2 * mu1 * ssim * (b2 - b1))
                 partial[at + 1] = scale * (-ssim * b1 * inv)
                 partial[at + 2] = scale * (2 * a1 * inv)
         return acc
 
     @ti.func
-    def blurred_partial_row(pred: ti.template(), partial: ti.template(), blurred_partial: ti.template(), v,
-                            c: ti.template()):
+    def blurred_partial_row(partial: ti.template(), blurred_partial: ti.template(), v, w, c: ti.template()):
         """Pass 3 on row v: the partials' horizontal window sums."""
-        h, w = pred.shape[0], pred.shape[1]
         first, last = interior(w)
         for u in range(w):
             for k in ti.static(range(c)):
                 m = ti.Vector.zero(dt, 3)
-                base = ((k * h + v) * w + u) * 3
+                base = record(v, u, k, w, c, 3)
                 if first <= u < last:
-                    m = blur_row(partial, base, u, w, 3, False)
+                    m = window_sum(partial, base, c * 3, u, w, 3, False)
                 else:
-                    m = blur_row(partial, base, u, w, 3, True)
+                    m = window_sum(partial, base, c * 3, u, w, 3, True)
                 for j in ti.static(range(3)):
-                    blurred_partial[((v * w + u) * c + k) * 3 + j] = m[j]
+                    blurred_partial[base + j] = m[j]
 
     @ti.func
     def gradient_row(blurred_partial: ti.template(), pred: ti.template(), target: ti.template(), grad: ti.template(),
@@ -219,7 +209,7 @@ def _kernels(dt) -> SimpleNamespace:
         h, w = pred.shape[0], pred.shape[1]
         for u in range(w):
             for k in ti.static(range(c)):
-                m = blur_col(blurred_partial, ((v * w + u) * c + k) * 3, w * c * 3, v, h, 3, checked)
+                m = window_sum(blurred_partial, record(v, u, k, w, c, 3), w * c * 3, v, h, 3, checked)
                 grad[v, u, k] = grad[v, u, k] + m[0] + 2 * pred[v, u, k] * m[1] + target[v, u, k] * m[2]
 
     @ti.kernel
@@ -241,7 +231,7 @@ def _kernels(dt) -> SimpleNamespace:
                     rows[v] = ssim_row(moments, mask, partial, v, weight, total, c, True)
         for i in range(h * spread):  # the window is symmetric: the backward blurs the partials again
             if i % spread == 0:
-                blurred_partial_row(pred, partial, blurred_partial, i // spread, c)
+                blurred_partial_row(partial, blurred_partial, i // spread, pred.shape[1], c)
         for i in range(h * spread):
             if i % spread == 0:
                 v = i // spread
