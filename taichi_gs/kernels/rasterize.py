@@ -66,12 +66,15 @@ def make(dt) -> SimpleNamespace:
     @ti.func
     def gather_entry(j, order: Array, slot_gid: Array, proj: Array, rect: Array,
                      entries: Array):
-        """Copy the screen record and pixel box of the Gaussian behind sorted entry j."""
+        """Copy the screen record and pixel box of the Gaussian behind sorted entry j (all reads before
+        the first write: a write between reads makes the compiler reload each array's address and shape)."""
         g = slot_gid[order[j]]
+        record = ti.Vector([proj[g, c] for c in ti.static(range(P_WIDTH))], dt=dt)
+        box = ti.Vector([rect[g, c] for c in ti.static(range(4))])
         for c in ti.static(range(P_WIDTH)):
-            entries[j, c] = proj[g, c]
+            entries[j, c] = record[c]
         for c in ti.static(range(4)):
-            entries[j, E_BOX + c] = ti.cast(rect[g, c], dt)
+            entries[j, E_BOX + c] = ti.cast(box[c], dt)
 
     @ti.func
     def screen_gaussian(entries: Array, j):

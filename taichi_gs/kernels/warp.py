@@ -22,7 +22,9 @@ in the anchor's camera frame (summed per image row, then in float64 on the host)
 
 Loop structure: the CPU runs a task per image row, and its backward scatters without atomics (slow
 there): each thread's band of rows adds into a private copy of the colour gradient, and a second loop
-sums the copies. GPU backends run a thread per pixel and add atomically.
+sums the copies. Per row and view the backward makes two passes, the pose gradient (reads only), then
+the scatter (writes): a write among the reads would make every later read reload the arrays' addresses
+and shapes. GPU backends run a thread per pixel and add atomically.
 """
 
 import functools
@@ -62,25 +64,31 @@ def _kernels(dt) -> SimpleNamespace:
         return z
 
     @ti.func
-    def land(u, v, z, R, t, intr, margin):
-        """(X_a, sx, sy): target pixel (u, v) at depth z in the anchor's camera, and its anchor index
-        coordinates (image coordinate - 0.5, margin included)."""
-        ray = vec3((u + 0.5 - intr[2]) / intr[0], (v + 0.5 - intr[3]) / intr[1], 1.0)
-        X = R @ (z * ray) + t
-        zc = ti.max(X[2], MIN_Z)
-        sx = intr[0] * X[0] / zc + intr[2] + margin - 0.5
-        sy = intr[1] * X[1] / zc + intr[3] + margin - 0.5
-        return X, sx, sy
+    def target_ray(u, v, intr):
+        """K^-1 (u + 0.5, v + 0.5, 1): target pixel (u, v)'s ray at unit depth."""
+        return vec3((u + 0.5 - intr[2]) / intr[0], (v + 0.5 - intr[3]) / intr[1], 1.0)
 
     @ti.func
-    def target_depth(u, v, depth: ti.template(), trans: ti.template(), R, t, intr, margin, fallback):
-        """The fixed point's depth of target pixel (u, v) (see the module docstring)."""
-        z = surface_depth(depth, trans, ti.cast(u + margin, dt), ti.cast(v + margin, dt), fallback)
+    def land(rotated_ray, z, t, intr, margin):
+        """(X_a, 1 / its clamped depth, sx, sy): the target point at depth z along a ray (already rotated
+        into the anchor's axes: R r) in the anchor's camera, and its anchor index coordinates (image
+        coordinate - 0.5, margin included)."""
+        X = z * rotated_ray + t
+        inv_z = 1.0 / ti.max(X[2], MIN_Z)
+        sx = intr[0] * X[0] * inv_z + intr[2] + margin - 0.5
+        sy = intr[1] * X[1] * inv_z + intr[3] + margin - 0.5
+        return X, inv_z, sx, sy
+
+    @ti.func
+    def target_depth(z, rotated_ray, depth: ti.template(), trans: ti.template(), R, t, intr, margin, fallback):
+        """The fixed point's depth of a target pixel whose first guess is z (the anchor's surface depth at
+        the same pixel; see the module docstring). The surface point seen at the landing (sx, sy) is
+        zs K^-1 (sx + 0.5 - margin, sy + 0.5 - margin, 1) = zs / X_a.z X_a."""
         for _ in ti.static(range(FIXED_POINT_STEPS)):
-            X, sx, sy = land(u, v, z, R, t, intr, margin)
+            X, inv_z, sx, sy = land(rotated_ray, z, t, intr, margin)
             zs = surface_depth(depth, trans, sx, sy, fallback)
-            surface = zs * vec3((sx + 0.5 - margin - intr[2]) / intr[0], (sy + 0.5 - margin - intr[3]) / intr[1], 1.0)
-            z = ti.max((R.transpose() @ (surface - t))[2], MIN_Z)
+            surface = zs * vec3(X[0] * inv_z, X[1] * inv_z, 1.0) - t
+            z = ti.max(R[0, 2] * surface[0] + R[1, 2] * surface[1] + R[2, 2] * surface[2], MIN_Z)  # (R^T s)_z
         return z
 
     @ti.func
@@ -117,11 +125,15 @@ def _kernels(dt) -> SimpleNamespace:
         """Target pixel (u, v) of every view: its depths into ``z_out``, the weighted sum into ``out``."""
         hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
         total = vec3(0.0, 0.0, 0.0)
+        ray = target_ray(u, v, intr)
+        z_anchor = surface_depth(anchor_depth, anchor_trans, ti.cast(u + margin, dt), ti.cast(v + margin, dt),
+                                 fallback)
         for view in range(n_views):
             R, t = view_transform(transforms, view)
-            z = target_depth(u, v, anchor_depth, anchor_trans, R, t, intr, margin, fallback)
+            rotated_ray = R @ ray
+            z = target_depth(z_anchor, rotated_ray, anchor_depth, anchor_trans, R, t, intr, margin, fallback)
             z_out[view, v, u] = z
-            _X, sx, sy = land(u, v, z, R, t, intr, margin)
+            _X, _inv_z, sx, sy = land(rotated_ray, z, t, intr, margin)
             x0, fx, _inside_x = cell(sx, wp)
             y0, fy, _inside_y = cell(sy, hp)
             wx, _dwx = interpolation_weights(fx)
@@ -162,18 +174,22 @@ def _kernels(dt) -> SimpleNamespace:
                               fallback, weight, keep, out, z_out)
 
     @ti.func
-    def pixel_backward(u, v, grad_out: ti.template(), anchor_rgb: ti.template(), z_in: ti.template(), view, R, t,
-                       intr, margin, weight, grad_anchor: ti.template(), lane, private: ti.template()):
-        """Scatter target pixel (u, v)'s share of dL/d anchor colour (without atomics into lane ``lane`` of
-        ``grad_anchor``, the flat (lanes, Hp, Wp, 3) copies, when ``private``; else atomically into
-        ``grad_anchor`` (Hp, Wp, 3)) and return its dL/d epsilon. The taps are read first and written in a
-        second pass, four runs of 12 consecutive floats from one base index each."""
-        hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
-        X, sx, sy = land(u, v, z_in[view, v, u], R, t, intr, margin)
+    def pixel_sample(u, v, z_in: ti.template(), view, R, t, intr, margin, hp, wp):
+        """(X_a, first tap x, y, Catmull-Rom weights and their derivatives along x and y, inside x, y) of
+        target pixel (u, v) of a view, at the forward's fixed-point depth."""
+        X, _inv_z, sx, sy = land(R @ target_ray(u, v, intr), z_in[view, v, u], t, intr, margin)
         x0, fx, inside_x = cell(sx, wp)
         y0, fy, inside_y = cell(sy, hp)
         wx, dwx = interpolation_weights(fx)
         wy, dwy = interpolation_weights(fy)
+        return X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y
+
+    @ti.func
+    def pixel_pose(u, v, grad_out: ti.template(), anchor_rgb: ti.template(), z_in: ti.template(), view, R, t,
+                   intr, margin, weight):
+        """Target pixel (u, v)'s dL/d epsilon in one view (reads only)."""
+        X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(
+            u, v, z_in, view, R, t, intr, margin, anchor_rgb.shape[0], anchor_rgb.shape[1])
         g = weight * vec3(grad_out[v, u, 0], grad_out[v, u, 1], grad_out[v, u, 2])
         g_sx = ti.cast(0.0, dt)
         g_sy = ti.cast(0.0, dt)
@@ -181,21 +197,9 @@ def _kernels(dt) -> SimpleNamespace:
             y = y0 + b
             for a in ti.static(range(TAPS)):
                 x = x0 + a
-                colour = vec3(anchor_rgb[y, x, 0], anchor_rgb[y, x, 1], anchor_rgb[y, x, 2])
-                dot = g.dot(colour)
+                dot = g.dot(vec3(anchor_rgb[y, x, 0], anchor_rgb[y, x, 1], anchor_rgb[y, x, 2]))
                 g_sx += dwx[a] * wy[b] * dot
                 g_sy += wx[a] * dwy[b] * dot
-        for b in ti.static(range(TAPS)):
-            y = y0 + b
-            g_row = wy[b] * g
-            base = ((lane * hp + y) * wp + x0) * 3  # the private copy's flat index of tap (x0, y)
-            for a in ti.static(range(TAPS)):
-                for c in ti.static(range(3)):
-                    share = wx[a] * g_row[c]
-                    if ti.static(private):  # not +=, which Taichi compiles to an atomic add
-                        grad_anchor[base + 3 * a + c] = grad_anchor[base + 3 * a + c] + share
-                    else:
-                        ti.atomic_add(grad_anchor[y, x0 + a, c], share)
         pose = ti.Vector.zero(dt, N_POSE)
         if X[2] > MIN_Z:
             g_sx *= inside_x
@@ -208,6 +212,27 @@ def _kernels(dt) -> SimpleNamespace:
                 pose[c] = g_X[c]
                 pose[3 + c] = g_rot[c]
         return pose
+
+    @ti.func
+    def pixel_scatter(u, v, grad_out: ti.template(), z_in: ti.template(), view, R, t, intr, margin, weight,
+                      hp, wp, grad_anchor: ti.template(), lane, private: ti.template()):
+        """Add target pixel (u, v)'s share of dL/d anchor colour in one view: without atomics into lane
+        ``lane`` of ``grad_anchor``, the flat (lanes, Hp, Wp, 3) copies, when ``private`` (four runs of 12
+        consecutive floats from one base index each); else atomically into ``grad_anchor`` (Hp, Wp, 3)."""
+        _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
+                                                                            hp, wp)
+        g = weight * vec3(grad_out[v, u, 0], grad_out[v, u, 1], grad_out[v, u, 2])
+        for b in ti.static(range(TAPS)):
+            y = y0 + b
+            g_row = wy[b] * g
+            base = ((lane * hp + y) * wp + x0) * 3  # the private copy's flat index of tap (x0, y)
+            for a in ti.static(range(TAPS)):
+                for c in ti.static(range(3)):
+                    share = wx[a] * g_row[c]
+                    if ti.static(private):  # not +=, which Taichi compiles to an atomic add
+                        grad_anchor[base + 3 * a + c] = grad_anchor[base + 3 * a + c] + share
+                    else:
+                        ti.atomic_add(grad_anchor[y, x0 + a, c], share)
 
     @ti.kernel
     def backward_atomic(
@@ -225,8 +250,9 @@ def _kernels(dt) -> SimpleNamespace:
         for v, u in ti.ndrange(grad_out.shape[0], grad_out.shape[1]):  # GPU: a thread per pixel
             for view in range(n_views):
                 R, t = view_transform(transforms, view)
-                pose = pixel_backward(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight,
-                                      grad_anchor, 0, False)
+                pose = pixel_pose(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight)
+                pixel_scatter(u, v, grad_out, z_in, view, R, t, intr, margin, weight, anchor_rgb.shape[0],
+                              anchor_rgb.shape[1], grad_anchor, 0, False)
                 for c in ti.static(range(N_POSE)):
                     ti.atomic_add(rows[v * n_views + view, c], pose[c])
 
@@ -252,10 +278,12 @@ def _kernels(dt) -> SimpleNamespace:
                 for v in range(lane * h // lanes, (lane + 1) * h // lanes):
                     for view in range(n_views):
                         R, t = view_transform(transforms, view)
-                        acc = ti.Vector.zero(dt, N_POSE)
+                        acc = ti.Vector.zero(dt, N_POSE)  # the row's reads, then its writes (module docstring)
                         for u in range(grad_out.shape[1]):
-                            acc += pixel_backward(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight,
-                                                  private, lane, True)
+                            acc += pixel_pose(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight)
+                        for u in range(grad_out.shape[1]):
+                            pixel_scatter(u, v, grad_out, z_in, view, R, t, intr, margin, weight,
+                                          anchor_rgb.shape[0], anchor_rgb.shape[1], private, lane, True)
                         for c in ti.static(range(N_POSE)):
                             rows[v * n_views + view, c] = acc[c]
         for i in range(grad_anchor.shape[0] * spread):

@@ -1,11 +1,13 @@
-"""Image-loss kernels' times: L1 (+ clipped MSE), D-SSIM and masked depth L1, value and gradient in one
-call each, float32 on the chosen backend, median over repeats after a warm-up.
+"""Stage 3's per-pixel kernels outside the rasterizer: the image losses (L1 + clipped MSE, D-SSIM, masked
+depth L1; value and gradient in one call each) and the warped virtual views (forward and backward of six
+views warped from one padded anchor render), float32 on the chosen backend, median over repeats after a
+warm-up.
 
-    python bench/losses.py [--arch cpu] [--size 256x192 ...] [--repeats 60] [--rounds 3] [--baseline ROOT]
+    python bench/pixel_kernels.py [--arch cpu] [--size 256x192 ...] [--repeats 60] [--rounds 3] [--baseline ROOT]
 
-``--baseline ROOT`` times the same kernels from another code root (e.g. a ``git worktree`` of an older
-commit) in alternating rounds, each in its own process (cwd and ``PYTHONPATH`` set to ROOT), and prints the
-ratio of this tree's median to the baseline's, so the comparison survives a machine whose speed drifts.
+``--baseline ROOT`` times the same kernels from another code root in alternating rounds (see ``ab.py``)
+and prints the ratio of this tree's median to the baseline's. (Before 2026-11-27 this script was
+``bench/losses.py`` and timed the losses only.)
 """
 
 from __future__ import annotations
@@ -16,15 +18,16 @@ import json
 import os
 import platform
 import statistics
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parents[1]
-KERNELS = ("l1_and_clipped_mse", "dssim", "masked_depth_l1")
+from ab import alternate
+
+KERNELS = ("l1_and_clipped_mse", "dssim", "masked_depth_l1", "warp_forward", "warp_backward")
+WARP_VIEWS = 6
+WARP_MARGIN = 8
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -33,11 +36,27 @@ def parse_size(text: str) -> tuple[int, int]:
     return int(w), int(h)
 
 
+def warp_views(width: int) -> np.ndarray:
+    """(WARP_VIEWS, 4, 4) target -> anchor transforms of a blur trail: up to 1.5 cm and 0.75 degrees
+    (about 4-6 px at 2 m for the focal length of ``width``), rotation and translation mixed."""
+    from taichi_gs.geometry import se3_exp
+
+    steps = np.arange(WARP_VIEWS) - WARP_VIEWS // 2
+    return np.stack([se3_exp(np.array([0.005 * i, 0.002 * i, 0.0, 0.001 * i, 0.0025 * i, 0.0])) for i in steps])
+
+
+def surface_depth(height: int, width: int) -> np.ndarray:
+    """Blended z of an opaque scene: a wall slanting from 1.8 to 2.4 m with a box at 1.2 m in the middle."""
+    z = np.tile(np.linspace(1.8, 2.4, width), (height, 1))
+    z[height // 3: 2 * height // 3, width // 3: 2 * width // 3] = 1.2
+    return z
+
+
 def time_kernels(arch: str, sizes: list[tuple[int, int]], repeats: int) -> dict[str, dict[str, float]]:
     """{"WxH": {kernel: median ms}} for this process's ``taichi_gs``."""
     import taichi as ti
 
-    from taichi_gs.kernels import losses, runtime
+    from taichi_gs.kernels import losses, runtime, warp
     from taichi_gs.kernels.splat import to_device
 
     runtime.init(arch)
@@ -49,9 +68,22 @@ def time_kernels(arch: str, sizes: list[tuple[int, int]], repeats: int) -> dict[
         p, t, g = (to_device(a, ti.f32) for a in (pred, target, np.zeros_like(pred)))
         dp, dt, dg = (to_device(a, ti.f32) for a in (rng.uniform(1, 2, (h, w)), rng.uniform(0, 2, (h, w)),
                                                       np.zeros((h, w))))
+        hp, wp = h + 2 * WARP_MARGIN, w + 2 * WARP_MARGIN
+        K = np.array([[0.85 * w, 0, w / 2], [0, 0.85 * w, h / 2], [0, 0, 1.0]])
+        anchor = to_device(rng.uniform(0, 1, (hp, wp, 3)), ti.f32)
+        anchor_depth = to_device(surface_depth(hp, wp), ti.f32)
+        anchor_trans = to_device(np.zeros((hp, wp)), ti.f32)
+        warped, grad_anchor = to_device(np.zeros((h, w, 3)), ti.f32), to_device(np.zeros((hp, wp, 3)), ti.f32)
+        z = to_device(np.zeros((WARP_VIEWS, h, w)), ti.f32)
+        views = warp_views(w)
+        warp.accumulate(anchor, anchor_depth, anchor_trans, views, K, WARP_MARGIN, 2.0, 1 / WARP_VIEWS, warped, z)
         calls = {"l1_and_clipped_mse": lambda: losses.l1_and_clipped_mse(p, t, g, weight=0.8),
                  "dssim": lambda: losses.dssim(p, t, g, weight=0.2),
-                 "masked_depth_l1": lambda: losses.masked_depth_l1(dp, dt, dg, weight=0.1)}
+                 "masked_depth_l1": lambda: losses.masked_depth_l1(dp, dt, dg, weight=0.1),
+                 "warp_forward": lambda: warp.accumulate(anchor, anchor_depth, anchor_trans, views, K, WARP_MARGIN,
+                                                         2.0, 1 / WARP_VIEWS, warped, z, first=True),
+                 "warp_backward": lambda: warp.backward(t, anchor, z, views, K, WARP_MARGIN, 1 / WARP_VIEWS,
+                                                        grad_anchor)}
         row = {}
         for name in KERNELS:
             for _ in range(3):
@@ -68,15 +100,6 @@ def time_kernels(arch: str, sizes: list[tuple[int, int]], repeats: int) -> dict[
     return results
 
 
-def run_in(root: Path, args: argparse.Namespace) -> dict[str, dict[str, float]]:
-    """:func:`time_kernels` in a fresh process importing ``taichi_gs`` from ``root``."""
-    command = [sys.executable, str(Path(__file__).resolve()), "--arch", args.arch, "--repeats", str(args.repeats),
-               "--json", "--size", *args.size]
-    env = {**os.environ, "PYTHONPATH": str(root)}
-    done = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, check=True)
-    return json.loads(done.stdout.strip().splitlines()[-1])
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--arch", default="cpu")
@@ -89,11 +112,8 @@ def main() -> None:
     if args.json:
         print(json.dumps(time_kernels(args.arch, [parse_size(s) for s in args.size], args.repeats)))
         return
-    roots = {"this tree": HERE} | ({"baseline": args.baseline.resolve()} if args.baseline else {})
-    rounds: dict[str, list] = {name: [] for name in roots}
-    for _ in range(args.rounds if args.baseline else 1):
-        for name, root in roots.items():
-            rounds[name].append(run_in(root, args))
+    rounds = alternate(__file__, ["--arch", args.arch, "--repeats", str(args.repeats), "--size", *args.size],
+                       args.baseline, args.rounds)
     print(f"# {datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
           f"--arch {args.arch}; median ms per call (median over rounds)")
     header = "| size | kernel | this tree |" + (" baseline | ratio |" if args.baseline else "")

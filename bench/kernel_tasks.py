@@ -1,0 +1,117 @@
+"""Where a render's time goes inside its kernels: Taichi's kernel profiler times every offloaded task (each
+top-level loop of a kernel) of rasterizer forward + backward passes on the synthetic scene of ``raster.py``,
+float32 on the chosen backend.
+
+    python bench/kernel_tasks.py [--arch cpu] [--combo 100000:256x192] [--passes 30] [--rounds 3] [--baseline ROOT]
+
+Tasks are named ``kernel:task loop`` (Taichi's numbering of a kernel's top-level loops; the compile counter
+is dropped so that two code roots line up). ``--baseline ROOT`` profiles another code root in alternating
+rounds (see ``ab.py``) and prints the ratio of this tree's median to the baseline's per task.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import re
+import statistics
+from pathlib import Path
+
+import numpy as np
+
+from ab import alternate
+
+MIN_MS = 0.05  # tasks under this many ms per pass are summed into "other tasks"
+
+
+def task_name(profiler_name: str) -> str:
+    """"backward_c86_0_kernel_1_range_for" -> "backward:1 range_for"."""
+    match = re.fullmatch(r"(\w+?)_c\d+_\d+_kernel_(\d+)_(\w+)", profiler_name)
+    return f"{match[1]}:{match[2]} {match[3]}" if match else profiler_name
+
+
+def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int) -> dict[str, float]:
+    """{task: mean ms per forward + backward pass} over ``passes`` passes after three warm-up passes; the
+    camera turns a little between passes."""
+    import taichi as ti
+    from taichi.lang import impl
+
+    from raster import scene
+    from taichi_gs.geometry import se3_exp
+    from taichi_gs.kernels import runtime
+
+    init = ti.init
+    ti.init = lambda **kw: init(**{**kw, "kernel_profiler": True})  # runtime.init is the one place that inits
+    try:
+        runtime.init(arch)
+    finally:
+        ti.init = init
+    from taichi_gs.kernels.splat import to_device
+    from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
+
+    width, height = size
+    params, K = scene(n, width, height)
+    gs = DeviceGaussians.from_numpy(*params)
+    rast = Rasterizer(ti.f32)
+    d_rgb = to_device(np.random.default_rng(1).normal(size=(height, width, 3)), ti.f32)
+    d_depth = to_device(np.random.default_rng(2).normal(size=(height, width)), ti.f32)
+    cameras = [Camera(K, se3_exp(np.array([0.01 * i, 0.0, 0.0, 0.0, 0.004 * i, 0.0])), width, height)
+               for i in range(-2, 3)]
+    for i in range(passes + 3):
+        if i == 3:
+            ti.sync()
+            ti.profiler.clear_kernel_profiler_info()
+        view = rast.forward(gs, cameras[i % len(cameras)])
+        rast.backward(gs, view, d_rgb, d_depth)
+    ti.sync()
+    prog = impl.get_runtime().prog
+    prog.sync_kernel_profiler()
+    prog.update_kernel_profiler()
+    totals: dict[str, float] = {}
+    for record in prog.get_kernel_profiler_records():
+        name = task_name(record.name)
+        totals[name] = totals.get(name, 0.0) + record.kernel_time
+    return {name: ms / passes for name, ms in totals.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--arch", default="cpu")
+    parser.add_argument("--combo", default="100000:256x192", help="Gaussians:WxH")
+    parser.add_argument("--passes", type=int, default=30)
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --baseline")
+    parser.add_argument("--baseline", type=Path, help="another code root to profile in the same run")
+    parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # one process's raw result
+    args = parser.parse_args()
+    n, size = args.combo.split(":")
+    if args.json:
+        w, h = (int(x) for x in size.lower().split("x"))
+        print(json.dumps(profile_tasks(args.arch, int(n), (w, h), args.passes)))
+        return
+    rounds = alternate(__file__, ["--arch", args.arch, "--combo", args.combo, "--passes", str(args.passes)],
+                       args.baseline, args.rounds)
+
+    def median(name: str, task: str) -> float:
+        return statistics.median(r.get(task, 0.0) for r in rounds[name])
+
+    tasks = sorted({t for r in rounds["this tree"] for t in r}, key=lambda t: -median("this tree", t))
+    print(f"# {datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+          f"--arch {args.arch}, {n} Gaussians at {size}; mean ms per forward + backward pass (median over rounds)")
+    header = "| task | this tree |" + (" baseline | ratio |" if args.baseline else "")
+    print(header)
+    print("|" + "---|" * (header.count("|") - 1))
+    names = ["this tree"] + (["baseline"] if args.baseline else [])
+    rows = [(t, [median(name, t) for name in names]) for t in tasks]
+    shown = [(t, ms) for t, ms in rows if ms[0] >= MIN_MS]
+    other = [sum(ms[i] for t, ms in rows if ms[0] < MIN_MS) for i in range(len(names))]
+    total = [sum(ms[i] for _, ms in rows) for i in range(len(names))]
+    for task, ms in shown + [("other tasks", other), ("total", total)]:
+        print(f"| {task} | " + " | ".join(f"{x:.2f}" for x in ms) + (f" | {ms[0] / ms[1]:.2f} |" if args.baseline
+                                                                      else " |"))
+
+
+if __name__ == "__main__":
+    main()
