@@ -5,8 +5,9 @@ float32 on the chosen backend.
     python bench/kernel_tasks.py [--arch cpu] [--combo 100000:256x192] [--passes 30] [--rounds 3] [--baseline ROOT]
 
 Tasks are named ``kernel:task loop`` (Taichi's numbering of a kernel's top-level loops; the compile counter
-is dropped so that two code roots line up). ``--baseline ROOT`` profiles another code root in alternating
-rounds (see ``ab.py``) and prints the ratio of this tree's median to the baseline's per task.
+is dropped so that two code roots line up, as long as their loops are the same). A second table sums each
+kernel's loops. ``--baseline ROOT`` profiles another code root in alternating rounds (see ``ab.py``) and
+prints the ratio of this tree's median to the baseline's per task and per kernel.
 """
 
 from __future__ import annotations
@@ -97,7 +98,8 @@ def main() -> None:
     def median(name: str, task: str) -> float:
         return statistics.median(r.get(task, 0.0) for r in rounds[name])
 
-    tasks = sorted({t for r in rounds["this tree"] for t in r}, key=lambda t: -median("this tree", t))
+    tasks = sorted({t for results in rounds.values() for r in results for t in r},
+                   key=lambda t: -median("this tree", t))  # a loop of one tree alone shows 0 in the other
     print(f"# {datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
           f"--arch {args.arch}, {n} Gaussians at {size}; mean ms per forward + backward pass (median over rounds)")
     header = "| task | this tree |" + (" baseline | ratio |" if args.baseline else "")
@@ -105,12 +107,25 @@ def main() -> None:
     print("|" + "---|" * (header.count("|") - 1))
     names = ["this tree"] + (["baseline"] if args.baseline else [])
     rows = [(t, [median(name, t) for name in names]) for t in tasks]
-    shown = [(t, ms) for t, ms in rows if ms[0] >= MIN_MS]
-    other = [sum(ms[i] for t, ms in rows if ms[0] < MIN_MS) for i in range(len(names))]
+    shown = [(t, ms) for t, ms in rows if max(ms) >= MIN_MS]
+    other = [sum(ms[i] for t, ms in rows if max(ms) < MIN_MS) for i in range(len(names))]
     total = [sum(ms[i] for _, ms in rows) for i in range(len(names))]
-    for task, ms in shown + [("other tasks", other), ("total", total)]:
-        print(f"| {task} | " + " | ".join(f"{x:.2f}" for x in ms) + (f" | {ms[0] / ms[1]:.2f} |" if args.baseline
-                                                                      else " |"))
+    kernels: dict[str, list[float]] = {}
+    for task, ms in rows:
+        kernel = task.split(":")[0]
+        kernels[kernel] = [a + b for a, b in zip(kernels.get(kernel, [0.0] * len(names)), ms)]
+    print_rows(shown + [("other tasks", other), ("total", total)], bool(args.baseline))
+    print("\nPer kernel (its loops summed; they line up between trees whose loops were numbered differently):\n")
+    print(header.replace("| task |", "| kernel |"))
+    print("|" + "---|" * (header.count("|") - 1))
+    print_rows(sorted(kernels.items(), key=lambda item: -item[1][0]), bool(args.baseline))
+
+
+def print_rows(rows: list[tuple[str, list[float]]], baseline: bool) -> None:
+    """Markdown rows: name, ms per tree, and this tree / baseline."""
+    for name, ms in rows:
+        ratio = (f" | {ms[0] / ms[1]:.2f}" if ms[1] > 0 else " | -") if baseline else ""
+        print(f"| {name} | " + " | ".join(f"{x:.2f}" for x in ms) + ratio + " |")
 
 
 if __name__ == "__main__":

@@ -131,21 +131,30 @@ def _kernels(dt) -> SimpleNamespace:
         tmp_order: ind(1),  # scratch (S,)
         entries: fnd(2),  # out (S, E_WIDTH): the sorted slots' screen records and tile boxes
     ):
-        for t in range(n_tiles):
-            tile_cursor[t] = 0
         for g in range(n):
-            tiles.emit_slots(g, rect, offsets, slot_gid, slot_tile, tile_cursor, tiles_x)
+            tiles.emit_slots(g, rect, offsets, slot_gid, slot_tile, tiles_x)
+        # counting sort of the slots by tile, on one thread: two threads' atomic counters on a few hundred
+        # tiles cost more than the whole pass (BENCHMARKS, "The render's sort without atomics")
         ti.loop_config(serialize=True)
-        for t in range(n_tiles + 1):
-            if t == 0:
-                tile_start[0] = 0
-            else:
-                tile_start[t] = tile_start[t - 1] + tile_cursor[t - 1]
-                tile_cursor[t - 1] = tile_start[t - 1]
-        for s in range(n_slots):
-            pos = ti.atomic_add(tile_cursor[slot_tile[s]], 1)
-            keys[pos] = proj[slot_gid[s], project.P_DEPTH]
-            order[pos] = s
+        for _ in range(1):
+            for t in range(n_tiles):
+                tile_cursor[t] = 0
+            for s in range(n_slots):
+                t = slot_tile[s]
+                tile_cursor[t] = tile_cursor[t] + 1
+            running = 0
+            for t in range(n_tiles):
+                count = tile_cursor[t]
+                tile_start[t] = running
+                tile_cursor[t] = running
+                running += count
+            tile_start[n_tiles] = running
+            for s in range(n_slots):
+                t = slot_tile[s]
+                pos = tile_cursor[t]
+                tile_cursor[t] = pos + 1
+                keys[pos] = proj[slot_gid[s], project.P_DEPTH]
+                order[pos] = s
         for i in range(n_tiles * spread):
             if i % spread == 0:
                 t = i // spread

@@ -37,17 +37,15 @@ def tile_count(rect: Array, g):
 
 
 @ti.func
-def emit_slots(g, rect: Array, offsets: Array, slot_gid: Array, slot_tile: Array, tile_hist: Array, tiles_x):
-    """Fill Gaussian g's slots with its tile ids and count them per tile."""
+def emit_slots(g, rect: Array, offsets: Array, slot_gid: Array, slot_tile: Array, tiles_x):
+    """Fill Gaussian g's slots with its id and their tile ids."""
     if rect[g, 0] <= rect[g, 2]:
         b = tile_box(rect, g)
         s = offsets[g]
         for ty in range(b[1], b[3] + 1):
             for tx in range(b[0], b[2] + 1):
-                t = ty * tiles_x + tx
                 slot_gid[s] = g
-                slot_tile[s] = t
-                ti.atomic_add(tile_hist[t], 1)
+                slot_tile[s] = ty * tiles_x + tx
                 s += 1
 
 
