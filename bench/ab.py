@@ -6,8 +6,10 @@ prints one JSON object as its last line of output."""
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -31,3 +33,9 @@ def alternate(script: str, args: list[str], baseline: Path | None, rounds: int) 
         for name, root in roots.items():
             results[name].append(run_in(root, script, args))
     return results
+
+
+def run_line(arch: str) -> str:
+    """The first words of a results table's caption: date, processor, CPU count, backend."""
+    processor = platform.processor() or platform.machine()
+    return f"# {datetime.date.today()}, {processor}, {os.cpu_count()} CPUs, --arch {arch}"

@@ -13,17 +13,14 @@ prints the ratio of this tree's median to the baseline's per task and per kernel
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
 import re
 import statistics
 from pathlib import Path
 
 import numpy as np
 
-from ab import alternate
+from ab import alternate, run_line
 
 MIN_MS = 0.05  # tasks under this many ms per pass are summed into "other tasks"
 
@@ -100,8 +97,7 @@ def main() -> None:
 
     tasks = sorted({t for results in rounds.values() for r in results for t in r},
                    key=lambda t: -median("this tree", t))  # a loop of one tree alone shows 0 in the other
-    print(f"# {datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-          f"--arch {args.arch}, {n} Gaussians at {size}; mean ms per forward + backward pass (median over rounds)")
+    print(run_line(args.arch) + f", {n} Gaussians at {size}; mean ms per forward + backward pass (median over rounds)")
     header = "| task | this tree |" + (" baseline | ratio |" if args.baseline else "")
     print(header)
     print("|" + "---|" * (header.count("|") - 1))

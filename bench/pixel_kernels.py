@@ -13,17 +13,14 @@ and prints the ratio of this tree's median to the baseline's. (Before 2026-11-27
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ab import alternate
+from ab import alternate, run_line
 
 KERNELS = ("l1_and_clipped_mse", "dssim", "masked_depth_l1", "warp_forward", "warp_backward")
 WARP_VIEWS = 6
@@ -114,8 +111,7 @@ def main() -> None:
         return
     rounds = alternate(__file__, ["--arch", args.arch, "--repeats", str(args.repeats), "--size", *args.size],
                        args.baseline, args.rounds)
-    print(f"# {datetime.date.today()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
-          f"--arch {args.arch}; median ms per call (median over rounds)")
+    print(run_line(args.arch) + "; median ms per call (median over rounds)")
     header = "| size | kernel | this tree |" + (" baseline | ratio |" if args.baseline else "")
     print(header)
     print("|" + "---|" * (header.count("|") - 1))

@@ -64,6 +64,11 @@ def make(dt) -> SimpleNamespace:
         return ti.Vector([x0, y0, ti.min(x0 + TILE, width) - 1, ti.min(y0 + TILE, height) - 1])
 
     @ti.func
+    def pixel_record(v, u, width, columns: ti.template()):
+        """Flat index of pixel (v, u)'s first value in a per-pixel state of ``columns`` values per pixel."""
+        return (v * width + u) * columns
+
+    @ti.func
     def gather_entry(j, order: Array, slot_gid: Array, proj: Array, rect: Array,
                      entries: Array):
         """Copy the screen record and pixel box of the Gaussian behind sorted entry j (all reads before
@@ -130,7 +135,7 @@ def make(dt) -> SimpleNamespace:
         ``with_colour`` (static) the colour sums are skipped and ``out_rgb`` is written black."""
         box = tile_pixels(t, tiles_x, width, height)
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            p = (v * width + u) * F_WIDTH
+            p = pixel_record(v, u, width, F_WIDTH)
             state[p + F_TRANS] = 1.0
             for c in ti.static(range(1, F_WIDTH)):
                 state[p + c] = 0.0
@@ -150,7 +155,7 @@ def make(dt) -> SimpleNamespace:
             for v in range(eb[1], eb[3] + 1):
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
-                    p = (v * width + u) * F_WIDTH
+                    p = pixel_record(v, u, width, F_WIDTH)
                     trans = state[p + F_TRANS]
                     if trans > 0.0:
                         power = splat_at(sg, u, v)[0]
@@ -170,7 +175,7 @@ def make(dt) -> SimpleNamespace:
                                     state[p + F_TRANS] = next_trans
                                     state[p + F_LAST] = local
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            p = (v * width + u) * F_WIDTH
+            p = pixel_record(v, u, width, F_WIDTH)
             trans = ti.abs(state[p + F_TRANS])
             for c in ti.static(range(3)):
                 if ti.static(with_colour):
@@ -189,12 +194,13 @@ def make(dt) -> SimpleNamespace:
     ):
         """Write dL/d(screen record) of every slot of tile t into slot_grad[slot, :]. ``state`` (flat,
         B_WIDTH values per pixel of the image) packs each pixel's final T, running T, colour/depth
-        accumulated behind, its image gradients and last contributor (see the B_* columns). Without ``with_colour`` (static, a
-        depth-and-alpha render) the colour terms are skipped and the slots' colour gradients are 0."""
+        accumulated behind, its image gradients and last contributor (see the B_* columns). Without
+        ``with_colour`` (static, a depth-and-alpha render) the colour terms are skipped and the slots'
+        colour gradients are 0."""
         box = tile_pixels(t, tiles_x, width, height)
         last = -1
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            p = (v * width + u) * B_WIDTH
+            p = pixel_record(v, u, width, B_WIDTH)
             state[p + B_FINAL] = out_trans[v, u]
             state[p + B_TRANS] = out_trans[v, u]
             for c in ti.static(range(4)):
@@ -224,7 +230,7 @@ def make(dt) -> SimpleNamespace:
             for v in range(eb[1], eb[3] + 1):
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
-                    p = (v * width + u) * B_WIDTH
+                    p = pixel_record(v, u, width, B_WIDTH)
                     if local <= state[p + B_LAST]:
                         s = splat_at(sg, u, v)
                         power = s[0]

@@ -113,6 +113,22 @@ def _kernels(dt) -> SimpleNamespace:
         return i0 - (TAPS // 2 - 1), c - i0, ti.cast(c == s, dt)
 
     @ti.func
+    def sample_at(rotated_ray, z, t, intr, margin, hp, wp):
+        """(X_a, first tap x, y, Catmull-Rom weights and their derivatives along x and y, inside x, y) of the
+        target point at depth z along ``rotated_ray`` (see :func:`land`) in an anchor of hp x wp pixels."""
+        X, _inv_z, sx, sy = land(rotated_ray, z, t, intr, margin)
+        x0, fx, inside_x = cell(sx, wp)
+        y0, fy, inside_y = cell(sy, hp)
+        wx, dwx = interpolation_weights(fx)
+        wy, dwy = interpolation_weights(fy)
+        return X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y
+
+    @ti.func
+    def rgb_at(image: ti.template(), y, x):
+        """The 3 channels of pixel (y, x) of an (H, W, 3) array."""
+        return vec3(image[y, x, 0], image[y, x, 1], image[y, x, 2])
+
+    @ti.func
     def view_transform(transforms: ti.template(), i):
         """(R, t) of view i from its row of ``transforms`` (R row-major, then t)."""
         R = ti.Matrix([[transforms[i, 3 * r + c] for c in ti.static(range(3))] for r in ti.static(range(3))], dt=dt)
@@ -133,16 +149,11 @@ def _kernels(dt) -> SimpleNamespace:
             rotated_ray = R @ ray
             z = target_depth(z_anchor, rotated_ray, anchor_depth, anchor_trans, R, t, intr, margin, fallback)
             z_out[view, v, u] = z
-            _X, _inv_z, sx, sy = land(rotated_ray, z, t, intr, margin)
-            x0, fx, _inside_x = cell(sx, wp)
-            y0, fy, _inside_y = cell(sy, hp)
-            wx, _dwx = interpolation_weights(fx)
-            wy, _dwy = interpolation_weights(fy)
+            _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = sample_at(rotated_ray, z, t, intr, margin, hp, wp)
             for b in ti.static(range(TAPS)):
                 row = vec3(0.0, 0.0, 0.0)
                 for a in ti.static(range(TAPS)):
-                    row += wx[a] * vec3(anchor_rgb[y0 + b, x0 + a, 0], anchor_rgb[y0 + b, x0 + a, 1],
-                                        anchor_rgb[y0 + b, x0 + a, 2])
+                    row += wx[a] * rgb_at(anchor_rgb, y0 + b, x0 + a)
                 total += wy[b] * row
         for c in ti.static(range(3)):
             out[v, u, c] = keep * out[v, u, c] + weight * total[c]
@@ -174,30 +185,17 @@ def _kernels(dt) -> SimpleNamespace:
                               fallback, weight, keep, out, z_out)
 
     @ti.func
-    def pixel_sample(u, v, z_in: ti.template(), view, R, t, intr, margin, hp, wp):
-        """(X_a, first tap x, y, Catmull-Rom weights and their derivatives along x and y, inside x, y) of
-        target pixel (u, v) of a view, at the forward's fixed-point depth."""
-        X, _inv_z, sx, sy = land(R @ target_ray(u, v, intr), z_in[view, v, u], t, intr, margin)
-        x0, fx, inside_x = cell(sx, wp)
-        y0, fy, inside_y = cell(sy, hp)
-        wx, dwx = interpolation_weights(fx)
-        wy, dwy = interpolation_weights(fy)
-        return X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y
-
-    @ti.func
     def pixel_pose(u, v, grad_out: ti.template(), anchor_rgb: ti.template(), z_in: ti.template(), view, R, t,
                    intr, margin, weight):
         """Target pixel (u, v)'s dL/d epsilon in one view (reads only)."""
-        X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(
-            u, v, z_in, view, R, t, intr, margin, anchor_rgb.shape[0], anchor_rgb.shape[1])
-        g = weight * vec3(grad_out[v, u, 0], grad_out[v, u, 1], grad_out[v, u, 2])
+        X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = sample_at(
+            R @ target_ray(u, v, intr), z_in[view, v, u], t, intr, margin, anchor_rgb.shape[0], anchor_rgb.shape[1])
+        g = weight * rgb_at(grad_out, v, u)
         g_sx = ti.cast(0.0, dt)
         g_sy = ti.cast(0.0, dt)
         for b in ti.static(range(TAPS)):
-            y = y0 + b
             for a in ti.static(range(TAPS)):
-                x = x0 + a
-                dot = g.dot(vec3(anchor_rgb[y, x, 0], anchor_rgb[y, x, 1], anchor_rgb[y, x, 2]))
+                dot = g.dot(rgb_at(anchor_rgb, y0 + b, x0 + a))
                 g_sx += dwx[a] * wy[b] * dot
                 g_sy += wx[a] * dwy[b] * dot
         pose = ti.Vector.zero(dt, N_POSE)
@@ -219,9 +217,9 @@ def _kernels(dt) -> SimpleNamespace:
         """Add target pixel (u, v)'s share of dL/d anchor colour in one view: without atomics into lane
         ``lane`` of ``grad_anchor``, the flat (lanes, Hp, Wp, 3) copies, when ``private`` (four runs of 12
         consecutive floats from one base index each); else atomically into ``grad_anchor`` (Hp, Wp, 3)."""
-        _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
-                                                                            hp, wp)
-        g = weight * vec3(grad_out[v, u, 0], grad_out[v, u, 1], grad_out[v, u, 2])
+        _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = sample_at(R @ target_ray(u, v, intr), z_in[view, v, u],
+                                                                         t, intr, margin, hp, wp)
+        g = weight * rgb_at(grad_out, v, u)
         for b in ti.static(range(TAPS)):
             y = y0 + b
             g_row = wy[b] * g
