@@ -5,7 +5,7 @@ thread, block barriers and bytes moved per kernel for one forward + backward.
 
 The scene is bench/raster.py's (n Gaussians filling the frustum, SH degree 0). Its binning, tile
 lists and per-pixel last contributors come from one CPU forward (the same projection, tiles and
-depth order as the GPU path: tests/test_vulkan.py checks the slot counts and images agree); the
+depth order as the GPU path: tests/test_gpu_backend.py checks the slot counts and images agree); the
 rest is counted from the kernels' loop structure in ``taichi_gs/kernels/raster_gpu.py`` and
 ``scan.py``. These are counts, not times: GPU times are unmeasured here (no GPU was available).
 

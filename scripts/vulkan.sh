@@ -6,7 +6,7 @@
 #   bash scripts/vulkan.sh       # set up (once) and print the export lines
 #
 # Why not bookworm's own lavapipe (Mesa 22.3.6): it drops loop iterations that contain an atomic,
-# which breaks the rasterizer's tile loops (tests/test_vulkan.py has a canary for this).
+# which breaks the rasterizer's tile loops (tests/test_gpu_backend.py has a canary for this).
 # Steps: apt-get install mesa-vulkan-drivers libvulkan1 (bookworm: the loader and the driver's
 # shared-library dependencies such as libLLVM-15); a private apt source for bookworm-backports with
 # the same URI as the machine's main Debian source; apt-get download mesa-vulkan-drivers, libdrm2,

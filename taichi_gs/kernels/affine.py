@@ -9,23 +9,25 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import runtime, scan
+from . import row_spans, runtime, scan
 
-N_GRAD_M = 12  # dL/dM, row-major, accumulated per image row
+N_GRAD_M = 12  # dL/dM, row-major, accumulated per row span
 
 
 @functools.cache
 def _kernels(dt) -> SimpleNamespace:
     img = ti.types.ndarray(dtype=dt, ndim=3)
     mat34 = ti.types.matrix(3, 4, dt)
-    spread = runtime.loop_spread()  # image rows x spread indices (see runtime.loop_spread)
+    spread = runtime.loop_spread()  # row spans x spread indices (see row_spans)
+    span = row_spans.span_length()
 
     @ti.kernel
     def forward_kernel(image: img, M: mat34, out: img):
-        for i in range(image.shape[0] * spread):
+        h, w = image.shape[0], image.shape[1]
+        for i in range(row_spans.span_count(h, w, span) * spread):
             if i % spread == 0:
-                v = i // spread
-                for u in range(image.shape[1]):
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
+                for u in range(u0, u1):
                     for c in ti.static(range(3)):
                         acc = M[c, 3]
                         for j in ti.static(range(3)):
@@ -34,12 +36,13 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.kernel
     def backward_kernel(image: img, M: mat34, grad_out: img, grad_image: img,
-                        rows: ti.types.ndarray(dtype=dt, ndim=2)):
-        for i in range(image.shape[0] * spread):
+                        parts: ti.types.ndarray(dtype=dt, ndim=2)):
+        h, w = image.shape[0], image.shape[1]
+        for i in range(row_spans.span_count(h, w, span) * spread):
             if i % spread == 0:
-                v = i // spread
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
                 acc = ti.Vector.zero(dt, N_GRAD_M)
-                for u in range(image.shape[1]):
+                for u in range(u0, u1):
                     for j in ti.static(range(3)):
                         g = ti.cast(0.0, dt)
                         for c in ti.static(range(3)):
@@ -50,7 +53,7 @@ def _kernels(dt) -> SimpleNamespace:
                             acc[4 * c + j] += grad_out[v, u, c] * image[v, u, j]
                         acc[4 * c + 3] += grad_out[v, u, c]
                 for q in ti.static(range(N_GRAD_M)):
-                    rows[v, q] = acc[q]
+                    parts[i // spread, q] = acc[q]
 
     return SimpleNamespace(forward=forward_kernel, backward=backward_kernel)
 
@@ -71,13 +74,13 @@ def forward(image: ti.Ndarray, M: np.ndarray, out: ti.Ndarray) -> ti.Ndarray:
 
 def backward(image: ti.Ndarray, M: np.ndarray, grad_out: ti.Ndarray, grad_image: ti.Ndarray) -> np.ndarray:
     """Given dL/d out of :func:`forward`, overwrite ``grad_image`` with dL/d image and return
-    dL/dM (3 x 4, summed in float64 over the image's rows)."""
+    dL/dM (3 x 4, summed in float64 over the image's row spans)."""
     _check(image, grad_out)
     _check(image, grad_image)
-    height = image.shape[0]
-    rows = _scratch.get(f"affine rows {image.dtype}", height, image.dtype, (N_GRAD_M,))
-    _kernels(image.dtype).backward(image, _matrix(M, image.dtype), grad_out, grad_image, rows)
-    return rows.to_numpy()[:height].astype(np.float64).sum(axis=0).reshape(3, 4)
+    n_spans = image.shape[0] * row_spans.spans_per_row(image.shape[1])
+    parts = _scratch.get(f"affine spans {image.dtype}", n_spans, image.dtype, (N_GRAD_M,))
+    _kernels(image.dtype).backward(image, _matrix(M, image.dtype), grad_out, grad_image, parts)
+    return parts.to_numpy()[:n_spans].astype(np.float64).sum(axis=0).reshape(3, 4)
 
 
 def _check(image: ti.Ndarray, other: ti.Ndarray) -> None:

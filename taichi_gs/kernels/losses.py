@@ -11,7 +11,9 @@ given gradient ndarray, so several terms can share one gradient buffer before a 
   C1 = 0.01^2, C2 = 0.03^2, as 3DGS; gradient w.r.t. ``pred`` only.
 - :func:`opacity_binarization`: ``sum_j o_j^2 (1 - o_j)^2`` with ``o = sigmoid(logit)``,
   gradient w.r.t. the logits.
-Reductions go row-wise then serially, so values are deterministic.
+Passes loop over row spans (:mod:`taichi_gs.kernels.row_spans`: whole rows on the CPU, a few pixels
+per thread on GPUs); reductions sum each span, then each row's spans, then the rows, in order, so
+values are deterministic.
 """
 
 import functools
@@ -22,7 +24,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import runtime
+from . import row_spans, runtime
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -41,30 +43,51 @@ WINDOW = _window()
 @functools.cache
 def _kernels(dt) -> SimpleNamespace:
     fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
-    # Per-pixel passes loop over image rows (n_rows x spread indices, see runtime.loop_spread), then
-    # over columns and channels inside: a flat (v, u, k) index would cost two integer divisions per
-    # element on the CPU backend, more than a loss's arithmetic.
+    # Per-pixel passes loop over row spans (see row_spans), then over columns and channels inside: a
+    # flat (v, u, k) index would cost two integer divisions per element on the CPU backend, more than
+    # a loss's arithmetic.
     spread = runtime.loop_spread()
+    span = row_spans.span_length()
 
     @ti.func
-    def total_of(rows: ti.template(), n):
-        """rows[0] + ... + rows[n - 1], in order (deterministic)."""
-        total = ti.cast(0.0, dt)
+    def total_of(rows: ti.template(), n, cols: ti.template()):
+        """Column sums of rows[0:n, :cols], in order (deterministic)."""
+        total = ti.Vector.zero(dt, cols)
         ti.loop_config(serialize=True)
         for v in range(n):
-            total += rows[v]
+            for q in ti.static(range(cols)):
+                total[q] += rows[v, q]
         return total
 
+    @ti.func
+    def totals(parts: ti.template(), rows: ti.template(), h, w, cols: ti.template()):
+        """Column sums of the span partials ``parts`` of an h x w image: each row's spans in order
+        (into ``rows``), then the rows in order. On the CPU a span is a row: no first step."""
+        out = ti.Vector.zero(dt, cols)
+        if ti.static(span > 0):
+            n = row_spans.per_row(w, span)
+            for v in range(h):
+                acc = ti.Vector.zero(dt, cols)
+                for j in range(v * n, v * n + n):
+                    for q in ti.static(range(cols)):
+                        acc[q] += parts[j, q]
+                for q in ti.static(range(cols)):
+                    rows[v, q] = acc[q]
+            out = total_of(rows, h, cols)
+        else:
+            out = total_of(parts, h, cols)
+        return out
+
     @ti.kernel
-    def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt, rows: fnd(1),
-           squared_rows: fnd(1), mse: fnd(1)) -> dt:
+    def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt, parts: fnd(2),
+           rows: fnd(2), mse: fnd(1)) -> dt:
         h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
         scale = weight / (total * c)
-        for i in range(h * spread):
+        for i in range(row_spans.span_count(h, w, span) * spread):
             if i % spread == 0:
-                v = i // spread
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
                 acc, squared = ti.cast(0.0, dt), ti.cast(0.0, dt)
-                for u in range(w):
+                for u in range(u0, u1):
                     m = mask[v, u]
                     for k in range(c):
                         diff = pred[v, u, k] - target[v, u, k]
@@ -72,36 +95,33 @@ def _kernels(dt) -> SimpleNamespace:
                         grad[v, u, k] = grad[v, u, k] + m * scale * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
                         clipped = ti.min(ti.max(pred[v, u, k], 0.0), 1.0) - target[v, u, k]
                         squared += m * clipped * clipped
-                rows[v] = acc
-                squared_rows[v] = squared
-        mse[0] = total_of(squared_rows, h) / (total * c)
-        return total_of(rows, h) / (total * c)
+                parts[i // spread, 0] = acc
+                parts[i // spread, 1] = squared
+        sums = totals(parts, rows, h, w, 2)
+        mse[0] = sums[1] / (total * c)
+        return sums[0] / (total * c)
 
     @ti.kernel
-    def masked_depth_l1(pred: fnd(2), target: fnd(2), grad: fnd(2), weight: dt, rows: fnd(2)) -> dt:
+    def masked_depth_l1(pred: fnd(2), target: fnd(2), grad: fnd(2), weight: dt, parts: fnd(2), rows: fnd(2)) -> dt:
         h, w = pred.shape[0], pred.shape[1]
-        for i in range(h * spread):
+        n_spans = row_spans.span_count(h, w, span)
+        for i in range(n_spans * spread):
             if i % spread == 0:
-                v = i // spread
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
                 acc = ti.cast(0.0, dt)
                 count = ti.cast(0.0, dt)
-                for u in range(w):
+                for u in range(u0, u1):
                     if target[v, u] > 0:
                         acc += ti.abs(pred[v, u] - target[v, u])
                         count += 1.0
-                rows[v, 0] = acc
-                rows[v, 1] = count
-        total = ti.cast(0.0, dt)
-        count = ti.cast(0.0, dt)
-        ti.loop_config(serialize=True)
-        for v in range(h):
-            total += rows[v, 0]
-            count += rows[v, 1]
-        count = ti.max(count, 1.0)
-        for i in range(h * spread):
+                parts[i // spread, 0] = acc
+                parts[i // spread, 1] = count
+        sums = totals(parts, rows, h, w, 2)
+        total, count = sums[0], ti.max(sums[1], 1.0)
+        for i in range(n_spans * spread):
             if i % spread == 0:
-                v = i // spread
-                for u in range(w):
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
+                for u in range(u0, u1):
                     if target[v, u] > 0:
                         diff = pred[v, u] - target[v, u]
                         grad[v, u] = grad[v, u] + weight / count * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
@@ -148,11 +168,11 @@ def _kernels(dt) -> SimpleNamespace:
         return acc
 
     @ti.func
-    def moments_row(pred: ti.template(), target: ti.template(), moments: ti.template(), v, c: ti.template()):
-        """Pass 1 on row v: horizontal window sums into ``moments``."""
+    def moments_row(pred: ti.template(), target: ti.template(), moments: ti.template(), v, u0, u1, c: ti.template()):
+        """Pass 1 on row v's pixels [u0, u1): horizontal window sums into ``moments``."""
         w = pred.shape[1]
         first, last = interior(w)
-        for u in range(w):
+        for u in range(u0, u1):
             for k in ti.static(range(c)):
                 m = ti.Vector.zero(dt, 5)
                 if first <= u < last:
@@ -163,14 +183,14 @@ def _kernels(dt) -> SimpleNamespace:
                     moments[record(v, u, k, w, c, 5) + j] = m[j]
 
     @ti.func
-    def ssim_row(moments: ti.template(), mask: ti.template(), partial: ti.template(), v, weight, total,
+    def ssim_row(moments: ti.template(), mask: ti.template(), partial: ti.template(), v, u0, u1, weight, total,
                  c: ti.template(), checked: ti.template()):
-        """Pass 2 on row v: vertical window sums, SSIM and dSSIM/d(mu1, E[x^2], E[xy]); returns the row's
-        masked SSIM sum."""
+        """Pass 2 on row v's pixels [u0, u1): vertical window sums, SSIM and dSSIM/d(mu1, E[x^2], E[xy]);
+        returns their masked SSIM sum."""
         h, w = mask.shape[0], mask.shape[1]
         acc = ti.cast(0.0, dt)
         norm = -weight / (total * c)
-        for u in range(w):
+        for u in range(u0, u1):
             scale = norm * mask[v, u]
             for k in ti.static(range(c)):
                 m = window_sum(moments, record(v, u, k, w, c, 5), w * c * 5, v, h, 5, checked)
@@ -188,10 +208,10 @@ def _kernels(dt) -> SimpleNamespace:
         return acc
 
     @ti.func
-    def blurred_partial_row(partial: ti.template(), blurred_partial: ti.template(), v, w, c: ti.template()):
-        """Pass 3 on row v: the partials' horizontal window sums."""
+    def blurred_partial_row(partial: ti.template(), blurred_partial: ti.template(), v, u0, u1, w, c: ti.template()):
+        """Pass 3 on row v's pixels [u0, u1): the partials' horizontal window sums."""
         first, last = interior(w)
-        for u in range(w):
+        for u in range(u0, u1):
             for k in ti.static(range(c)):
                 m = ti.Vector.zero(dt, 3)
                 base = record(v, u, k, w, c, 3)
@@ -204,10 +224,10 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.func
     def gradient_row(blurred_partial: ti.template(), pred: ti.template(), target: ti.template(), grad: ti.template(),
-                     v, c: ti.template(), checked: ti.template()):
-        """Pass 4 on row v: the partials' vertical window sums, chained into dL/dpred."""
+                     v, u0, u1, c: ti.template(), checked: ti.template()):
+        """Pass 4 on row v's pixels [u0, u1): the partials' vertical window sums, chained into dL/dpred."""
         h, w = pred.shape[0], pred.shape[1]
-        for u in range(w):
+        for u in range(u0, u1):
             for k in ti.static(range(c)):
                 m = window_sum(blurred_partial, record(v, u, k, w, c, 3), w * c * 3, v, h, 3, checked)
                 grad[v, u, k] = grad[v, u, k] + m[0] + 2 * pred[v, u, k] * m[1] + target[v, u, k] * m[2]
@@ -215,34 +235,37 @@ def _kernels(dt) -> SimpleNamespace:
     @ti.kernel
     def dssim(
         pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt,
-        moments: fnd(1), partial: fnd(1), blurred_partial: fnd(1), rows: fnd(1), c: ti.template(),
+        moments: fnd(1), partial: fnd(1), blurred_partial: fnd(1), parts: fnd(2), rows: fnd(2), c: ti.template(),
     ) -> dt:
-        h = pred.shape[0]
+        h, w = pred.shape[0], pred.shape[1]
+        n_spans = row_spans.span_count(h, w, span)
         first, last = interior(h)
-        for i in range(h * spread):  # horizontal window sums of x, y, x^2, y^2, xy
+        for i in range(n_spans * spread):  # horizontal window sums of x, y, x^2, y^2, xy
             if i % spread == 0:
-                moments_row(pred, target, moments, i // spread, c)
-        for i in range(h * spread):  # vertical window sums, SSIM and its partials
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
+                moments_row(pred, target, moments, v, u0, u1, c)
+        for i in range(n_spans * spread):  # vertical window sums, SSIM and its partials
             if i % spread == 0:
-                v = i // spread
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
                 if first <= v < last:
-                    rows[v] = ssim_row(moments, mask, partial, v, weight, total, c, False)
+                    parts[i // spread, 0] = ssim_row(moments, mask, partial, v, u0, u1, weight, total, c, False)
                 else:
-                    rows[v] = ssim_row(moments, mask, partial, v, weight, total, c, True)
-        for i in range(h * spread):  # the window is symmetric: the backward blurs the partials again
+                    parts[i // spread, 0] = ssim_row(moments, mask, partial, v, u0, u1, weight, total, c, True)
+        for i in range(n_spans * spread):  # the window is symmetric: the backward blurs the partials again
             if i % spread == 0:
-                blurred_partial_row(partial, blurred_partial, i // spread, pred.shape[1], c)
-        for i in range(h * spread):
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
+                blurred_partial_row(partial, blurred_partial, v, u0, u1, w, c)
+        for i in range(n_spans * spread):
             if i % spread == 0:
-                v = i // spread
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
                 if first <= v < last:
-                    gradient_row(blurred_partial, pred, target, grad, v, c, False)
+                    gradient_row(blurred_partial, pred, target, grad, v, u0, u1, c, False)
                 else:
-                    gradient_row(blurred_partial, pred, target, grad, v, c, True)
-        return 1.0 - total_of(rows, h) / (total * c)
+                    gradient_row(blurred_partial, pred, target, grad, v, u0, u1, c, True)
+        return 1.0 - totals(parts, rows, h, w, 1)[0] / (total * c)
 
     @ti.kernel
-    def opacity_binarization(logits: fnd(1), grad: fnd(1), n: ti.i32, weight: dt, rows: fnd(1)) -> dt:
+    def opacity_binarization(logits: fnd(1), grad: fnd(1), n: ti.i32, weight: dt, rows: fnd(2)) -> dt:
         n_chunks = (n + 1023) // 1024
         for chunk in range(n_chunks):
             acc = ti.cast(0.0, dt)
@@ -250,8 +273,8 @@ def _kernels(dt) -> SimpleNamespace:
                 o = 1.0 / (1.0 + ti.exp(-logits[i]))
                 acc += o * o * (1 - o) * (1 - o)
                 grad[i] = grad[i] + weight * 2 * o * (1 - o) * (1 - 2 * o) * o * (1 - o)
-            rows[chunk] = acc
-        return total_of(rows, n_chunks)
+            rows[chunk, 0] = acc
+        return total_of(rows, n_chunks, 1)[0]
 
     return SimpleNamespace(l1=l1, masked_depth_l1=masked_depth_l1, dssim=dssim,
                            opacity_binarization=opacity_binarization)
@@ -265,6 +288,13 @@ def _buffer(name: str, dtype, shape: tuple) -> ti.Ndarray:
     if key not in _scratch:
         _scratch[key] = ti.ndarray(dtype, shape)
     return _scratch[key]
+
+
+def _partials(image: ti.Ndarray, cols: int) -> tuple[ti.Ndarray, ti.Ndarray]:
+    """Scratch for a reduction over an image: per-span partials and per-row sums, ``cols`` values each."""
+    h, w = image.shape[0], image.shape[1]
+    return (_buffer("span_partials", image.dtype, (h * row_spans.spans_per_row(w), cols)),
+            _buffer("row_sums", image.dtype, (h, cols)))
 
 
 def _checked(pred, target, grad):
@@ -317,18 +347,16 @@ def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, w
     """:func:`l1`, and from the same pass the mean of ``(clip(pred, 0, 1) - target)^2`` over the same
     pixels (for PSNR; no gradient)."""
     dt = _checked(pred, target, grad)
-    h = pred.shape[0]
     mask = _weights_for(pred, mask)
     mse = _buffer("mse", dt, (1,))
-    value = _kernels(dt).l1(pred, target, grad, weight, mask.weights, mask.total, _buffer("rows", dt, (h,)),
-                            _buffer("squared_rows", dt, (h,)), mse)
+    value = _kernels(dt).l1(pred, target, grad, weight, mask.weights, mask.total, *_partials(pred, 2), mse)
     return float(value), float(mse[0])
 
 
 def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
     """Mean ``|pred - target|`` over pixels with target > 0 of (H, W) depth maps; adds to ``grad``."""
     dt = _checked(pred, target, grad)
-    return float(_kernels(dt).masked_depth_l1(pred, target, grad, weight, _buffer("rows2", dt, (pred.shape[0], 2))))
+    return float(_kernels(dt).masked_depth_l1(pred, target, grad, weight, *_partials(pred, 2)))
 
 
 def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
@@ -342,7 +370,7 @@ def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float 
         _kernels(dt).dssim(
             pred, target, grad, weight, mask.weights, mask.total, _buffer("moments", dt, (h * w * c * 5,)),
             _buffer("partial", dt, (h * w * c * 3,)), _buffer("blurred_partial", dt, (h * w * c * 3,)),
-            _buffer("rows", dt, (h,)), c,
+            *_partials(pred, 1), c,
         )
     )
 
@@ -350,5 +378,5 @@ def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float 
 def opacity_binarization(logits: ti.Ndarray, grad: ti.Ndarray, n: int, weight: float = 1.0) -> float:
     """``sum o^2 (1 - o)^2`` over the first n logits; adds ``weight * dL/dlogit`` to ``grad``."""
     dt = logits.dtype
-    rows = _buffer("chunks", dt, (max(1, -(-n // 1024)),))
+    rows = _buffer("chunks", dt, (max(1, -(-n // 1024)), 1))
     return float(_kernels(dt).opacity_binarization(logits, grad, n, weight, rows))

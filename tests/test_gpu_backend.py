@@ -1,11 +1,12 @@
-"""The GPU execution model, checked on Taichi's Vulkan backend (f32) against the CPU backend.
+"""The GPU execution model, checked on a GPU backend (f32) against the CPU backend.
 
-Runs only with ``TAICHI_GS_ARCH=vulkan`` (CI: ``source scripts/vulkan.sh`` first, which gives a
-CPU Vulkan driver, Mesa 25's lavapipe); skipped otherwise. Asking for Vulkan where there is none
-fails (BackendError), it never skips. The CPU side runs in a subprocess (Taichi starts one backend
-per process) and hands back the same quantities in an .npz: images, every parameter gradient and
-the pose gradient of several scenes, and the loss / blur / Adam kernels. Both sides must agree to
-1e-5 relative (per array: max |vulkan - cpu| / max |cpu|); the 640x480 scene allows threshold flips.
+Runs only with ``TAICHI_GS_ARCH`` set to a GPU backend: ``vulkan`` (CI: ``source scripts/vulkan.sh``
+first, which gives a CPU Vulkan driver, Mesa 25's lavapipe), ``cuda`` or ``metal``; skipped
+otherwise. Asking for a backend that is not there fails (BackendError), it never skips. The CPU side
+runs in a subprocess (Taichi starts one backend per process) and hands back the same quantities in
+an .npz: images, every parameter gradient and the pose gradient of several scenes, and the loss /
+blur / Adam kernels. Both sides must agree to 1e-5 relative (per array: max |gpu - cpu| / max |cpu|);
+the 640x480 scene allows threshold flips.
 """
 
 from __future__ import annotations
@@ -21,10 +22,12 @@ import pytest
 from taichi_gs.errors import BackendError
 from taichi_gs.kernels import runtime
 
+GPU_ARCHS = ("vulkan", "cuda", "metal")
+ARCH = os.environ.get(runtime.ARCH_ENV, "").lower()
 pytestmark = [
-    pytest.mark.vulkan,
-    pytest.mark.skipif(os.environ.get(runtime.ARCH_ENV, "").lower() != "vulkan",
-                       reason="set TAICHI_GS_ARCH=vulkan (after `source scripts/vulkan.sh`) to run"),
+    pytest.mark.gpu,
+    pytest.mark.skipif(ARCH not in GPU_ARCHS,
+                       reason="set TAICHI_GS_ARCH=vulkan (after `source scripts/vulkan.sh`), cuda or metal to run"),
 ]
 TESTS = Path(__file__).parent
 RTOL = 1e-5
@@ -206,15 +209,15 @@ import numpy as np
 sys.path.insert(0, {tests!r})
 from taichi_gs.kernels import runtime
 runtime.init("cpu")
-import test_vulkan
-np.savez({path!r}, **test_vulkan.all_outputs())
+import test_gpu_backend
+np.savez({path!r}, **test_gpu_backend.all_outputs())
 """
 
 
 @pytest.fixture(scope="module")
 def backend():
-    got = runtime.init()  # TAICHI_GS_ARCH=vulkan: a BackendError here fails loudly
-    assert got.arch == "vulkan", got
+    got = runtime.init()  # TAICHI_GS_ARCH names the GPU: a BackendError here fails loudly
+    assert got.arch == ARCH, got
     return got
 
 
@@ -235,9 +238,10 @@ def test_atomic_loop_canary(backend) -> None:
     from taichi_gs.kernels import canary
 
     for got, want in canary.atomic_loop_counts():
-        assert got == want, f"the Vulkan driver dropped atomic loop iterations: {got} of {want} ({backend.device})"
+        assert got == want, f"the {ARCH} driver dropped atomic loop iterations: {got} of {want} ({backend.device})"
 
 
+@pytest.mark.skipif(ARCH == "cuda", reason="CUDA has float64 (tests/test_render.py checks it there)")
 def test_f64_is_refused_with_a_clear_error(backend) -> None:
     import taichi as ti
 
@@ -276,7 +280,7 @@ def test_rasterizer_matches_cpu(backend, cpu_reference, name) -> None:
 
     from taichi_gs.render import Rasterizer
 
-    assert Rasterizer(ti.f32).gpu is not None, "the block-per-tile kernels should run on Vulkan"
+    assert Rasterizer(ti.f32).gpu is not None, "the block-per-tile kernels should run on a GPU backend"
     got = scene_outputs(name)
     assert got[f"{name}/slots"][0] == cpu_reference[f"{name}/slots"][0]
     assert got[f"{name}/alpha"].max() > 0.99, "scene should reach full opacity somewhere"
@@ -293,7 +297,7 @@ def test_rasterizer_matches_cpu(backend, cpu_reference, name) -> None:
 @pytest.mark.parametrize("check", ["test_empty_scene", "test_all_gaussians_culled_renders_background",
                                    "test_rgb_colours_are_sh_dc_and_result_shapes",
                                    "test_device_api_views_accumulate_gradients"])
-def test_render_checks_in_f32_on_vulkan(backend, check) -> None:
+def test_render_checks_in_f32_on_the_gpu(backend, check) -> None:
     """tests/test_render.py's float32 checks (empty and fully culled scenes, shapes, several views)."""
     sys.path.insert(0, str(TESTS))
     import test_render as tr
@@ -429,7 +433,7 @@ def test_losses_blur_adam_match_cpu(backend, cpu_reference) -> None:
 
 
 def test_stage2_refine_steps_match_cpu(backend, cpu_reference) -> None:
-    """Stage 2 on Vulkan: each step's loss values, pose gradients and Gaussian gradients match the
+    """Stage 2 on the GPU: each step's loss values, pose gradients and Gaussian gradients match the
     CPU f32 run to 1e-5; so do the Gaussians' moves after the steps, to ADAM_MOVE_TOL: Adam divides
     each gradient by its own running size, so a small gradient's last-bit difference (the GPU sums
     pixels in another order) becomes a difference relative to the learning rate (measured 1.6e-4)."""
@@ -447,4 +451,4 @@ def check_close(key: str, got: np.ndarray, want: np.ndarray, rtol: float = RTOL)
     scale = float(np.abs(want).max())
     assert scale > 0, f"{key}: the CPU reference is all zero, the comparison would prove nothing"
     err = float(np.abs(got.astype(np.float64) - want).max()) / scale
-    assert err <= rtol, f"{key}: vulkan differs from cpu by {err:.2e} (relative to max |cpu| {scale:.3g})"
+    assert err <= rtol, f"{key}: {ARCH} differs from cpu by {err:.2e} (relative to max |cpu| {scale:.3g})"
