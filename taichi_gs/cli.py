@@ -107,13 +107,20 @@ def main(
     state.arch = arch.value
 
 
+def _open3d_version() -> str:
+    try:
+        import open3d
+    except ImportError:
+        return "not installed (stage 1 needs it; stages 2 and 3 run without it)"
+    return open3d.__version__
+
+
 @app.command()
 @handles_errors
 def info() -> None:
     """Print versions, the Taichi backend actually obtained, and the kernel cache location."""
     import cv2
     import numpy
-    import open3d
 
     from .kernels import runtime  # first: it keeps Taichi's banner off stdout
 
@@ -125,7 +132,7 @@ def info() -> None:
         "python": platform.python_version(),
         "taichi": ".".join(map(str, taichi.__version__)),
         "numpy": numpy.__version__,
-        "open3d": open3d.__version__,
+        "open3d": _open3d_version(),
         "opencv": cv2.__version__,
         "arch requested": state.arch,
         "arch obtained": backend.arch,

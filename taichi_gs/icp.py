@@ -1,17 +1,35 @@
-"""Depth point clouds and coarse-to-fine point-to-plane ICP with Open3D."""
+"""Depth point clouds and coarse-to-fine point-to-plane ICP with Open3D.
+
+Open3D is imported on first use (:func:`open3d`): only stage 1 needs it, so stages 2 and 3 (and
+everything that imports this module for :func:`reliable_depth_mask`) run where it is not installed.
+"""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from .geometry import backproject
 
-o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+if TYPE_CHECKING:
+    import open3d as o3d
+
+
+@functools.cache
+def open3d():
+    """The open3d module, imported once and told to print errors only."""
+    try:
+        import open3d as o3d
+    except ImportError as error:
+        raise ImportError(f"stage 1 (pose) needs open3d, which did not import ({error}): pip install open3d; "
+                          "stages 2 and 3 run without it") from error
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    return o3d
 
 
 @dataclass(frozen=True)
@@ -38,6 +56,7 @@ def reliable_depth_mask(depth: np.ndarray, min_depth: float, max_depth: float, e
 
 def depth_cloud(depth: np.ndarray, K: np.ndarray, mask: np.ndarray, colors: np.ndarray | None = None) -> o3d.geometry.PointCloud:
     """Camera-space point cloud of the masked depth pixels (coloured if colours are given)."""
+    o3d = open3d()
     cloud = o3d.geometry.PointCloud()
     cloud.points = o3d.utility.Vector3dVector(backproject(depth, K)[mask])
     if colors is not None:
@@ -83,7 +102,7 @@ def prepare_icp(
     for voxel, steps in zip(voxel_sizes, iterations):
         src = source if voxel == finest else source.voxel_down_sample(voxel)
         tgt = target if voxel == finest else target.voxel_down_sample(voxel)
-        tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_factor * voxel, max_nn=normal_max_nn))
+        tgt.estimate_normals(open3d().geometry.KDTreeSearchParamHybrid(radius=normal_radius_factor * voxel, max_nn=normal_max_nn))
         levels.append((voxel, src, tgt, int(steps)))
     return ICPLevels(tuple(levels), distance_factor)
 
@@ -92,7 +111,7 @@ def align(prepared: ICPLevels, init: np.ndarray) -> ICPResult:
     """Point-to-plane ICP through the prepared levels, each starting from the previous one's result;
     correspondences farther than distance_factor x voxel are ignored. Fitness and RMSE are the last
     level's (fitness 0 when there was nothing to align)."""
-    registration = o3d.pipelines.registration
+    registration = open3d().pipelines.registration
     transform = np.asarray(init, dtype=np.float64)
     fitness, rmse = 0.0, float("inf")
     for voxel, src, tgt, steps in prepared.levels or ():
@@ -159,6 +178,7 @@ def rgbd_odometry(
 
     Colours are RGB floats in [0, 1], depths metres (0 = invalid).
     """
+    o3d = open3d()
     h, w = depth_t.shape
     camera = o3d.camera.PinholeCameraIntrinsic(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     option = o3d.pipelines.odometry.OdometryOption(
@@ -171,6 +191,7 @@ def rgbd_odometry(
 
 
 def _rgbd(color: np.ndarray, depth: np.ndarray, max_depth: float) -> o3d.geometry.RGBDImage:
+    o3d = open3d()
     rgb = o3d.geometry.Image(np.ascontiguousarray(np.clip(color * 255.0, 0, 255).astype(np.uint8)))
     z = o3d.geometry.Image(np.ascontiguousarray(depth, dtype=np.float32))
     return o3d.geometry.RGBDImage.create_from_color_and_depth(rgb, z, depth_scale=1.0, depth_trunc=max_depth,

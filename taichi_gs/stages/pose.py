@@ -17,15 +17,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from ..errors import InputError
 from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, rigid_flow, to_gray_u8
 from ..geometry import invert, se3_log
-from ..icp import ICPLevels, align, depth_cloud, prepare_icp, reliable_depth_mask, rgbd_odometry
+from ..icp import ICPLevels, align, depth_cloud, open3d, prepare_icp, reliable_depth_mask, rgbd_odometry
 from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import write_point_cloud
@@ -35,6 +35,9 @@ from ..pose_verify import FlowCheck, FrameView, Verification, VerifySettings, fl
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .pose_solver import SolverSettings, solve
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 # What a degenerate pair may raise; anything else is a bug or bad input and ends the run.
 NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError)
@@ -547,7 +550,7 @@ def chain_poses(relatives: list[np.ndarray]) -> np.ndarray:
 def fuse_points(sequence, poses: np.ndarray, config: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
     """World points and colours of all frames' reliable depth, voxel-downsampled to ``voxel_size_m``."""
     K = sequence.intrinsics.K()
-    fused = o3d.geometry.PointCloud()
+    fused = open3d().geometry.PointCloud()
     for i, pose in enumerate(poses):
         depth = sequence.depth(i)
         mask = config.reliable_depth(depth)
@@ -714,7 +717,7 @@ def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, i
 
 def _information(frames: FrameCache, i: int, j: int, T: np.ndarray, config: PoseConfig) -> np.ndarray:
     """Open3D's point-to-point information matrix of the edge i -> j, reordered to [translation, rotation]."""
-    info = np.asarray(o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+    info = np.asarray(open3d().pipelines.registration.get_information_matrix_from_point_clouds(
         frames.info_cloud(i), frames.info_cloud(j), config.graph_info_distance_m, T))
     order = [3, 4, 5, 0, 1, 2]
     info = info[np.ix_(order, order)]
