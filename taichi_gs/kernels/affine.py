@@ -36,7 +36,7 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.kernel
     def backward_kernel(image: img, M: mat34, grad_out: img, grad_image: img,
-                        parts: ti.types.ndarray(dtype=dt, ndim=2)):
+                        parts: ti.types.ndarray(dtype=dt, ndim=2), rows: ti.types.ndarray(dtype=dt, ndim=2)):
         h, w = image.shape[0], image.shape[1]
         for i in range(row_spans.span_count(h, w, span) * spread):
             if i % spread == 0:
@@ -54,6 +54,8 @@ def _kernels(dt) -> SimpleNamespace:
                         acc[4 * c + 3] += grad_out[v, u, c]
                 for q in ti.static(range(N_GRAD_M)):
                     parts[i // spread, q] = acc[q]
+        if ti.static(span > 0):  # on the GPU, fold each row's spans (on the CPU a span is a row)
+            row_spans.sum_rows(parts, rows, h, w, span, N_GRAD_M)
 
     return SimpleNamespace(forward=forward_kernel, backward=backward_kernel)
 
@@ -74,13 +76,16 @@ def forward(image: ti.Ndarray, M: np.ndarray, out: ti.Ndarray) -> ti.Ndarray:
 
 def backward(image: ti.Ndarray, M: np.ndarray, grad_out: ti.Ndarray, grad_image: ti.Ndarray) -> np.ndarray:
     """Given dL/d out of :func:`forward`, overwrite ``grad_image`` with dL/d image and return
-    dL/dM (3 x 4, summed in float64 over the image's row spans)."""
+    dL/dM (3 x 4, each image row's sum added up in float64)."""
     _check(image, grad_out)
     _check(image, grad_image)
-    n_spans = image.shape[0] * row_spans.spans_per_row(image.shape[1])
+    height = image.shape[0]
+    n_spans = height * row_spans.spans_per_row(image.shape[1])
     parts = _scratch.get(f"affine spans {image.dtype}", n_spans, image.dtype, (N_GRAD_M,))
-    _kernels(image.dtype).backward(image, _matrix(M, image.dtype), grad_out, grad_image, parts)
-    return parts.to_numpy()[:n_spans].astype(np.float64).sum(axis=0).reshape(3, 4)
+    rows = _scratch.get(f"affine rows {image.dtype}", height, image.dtype, (N_GRAD_M,))
+    _kernels(image.dtype).backward(image, _matrix(M, image.dtype), grad_out, grad_image, parts, rows)
+    by_row = rows if n_spans > height else parts  # one span per row: the partials are the rows' sums
+    return by_row.to_numpy()[:height].astype(np.float64).sum(axis=0).reshape(3, 4)
 
 
 def _check(image: ti.Ndarray, other: ti.Ndarray) -> None:

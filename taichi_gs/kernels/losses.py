@@ -65,14 +65,7 @@ def _kernels(dt) -> SimpleNamespace:
         (into ``rows``), then the rows in order. On the CPU a span is a row: no first step."""
         out = ti.Vector.zero(dt, cols)
         if ti.static(span > 0):
-            n = row_spans.per_row(w, span)
-            for v in range(h):
-                acc = ti.Vector.zero(dt, cols)
-                for j in range(v * n, v * n + n):
-                    for q in ti.static(range(cols)):
-                        acc[q] += parts[j, q]
-                for q in ti.static(range(cols)):
-                    rows[v, q] = acc[q]
+            row_spans.sum_rows(parts, rows, h, w, span, cols)
             out = total_of(rows, h, cols)
         else:
             out = total_of(parts, h, cols)
