@@ -5,7 +5,7 @@ is a whole row: Taichi's CPU backend runs a range-for over a few hundred rows on
 loop iterates over ``spread x rows`` indices and works on every spread-th one
 (:func:`~taichi_gs.kernels.runtime.loop_spread`). GPU backends need thousands of threads: a span
 there is :data:`GPU_SPAN` pixels and the spread is 1. A reduction writes one partial per span;
-:func:`row_totals` sums each row's partials in order (on the GPU; on the CPU a span's partial is
+:func:`sum_rows` sums each row's partials in order (on the GPU; on the CPU a span's partial is
 its row's), so results are deterministic on both.
 
 A kernel loops ``for i in range(span_count(h, w, span) * spread)``, works only where
