@@ -21,6 +21,8 @@ step() {  # name limit command...: run with a time limit, keep its log, print it
   grep -v "^SKIPPED\|SyntaxWarning\|Save a field" "$LOGS/$name.log" | tail -n 6
   tar czf "$OUT/logs.tgz" -C "$LOGS" .
 }
+runs=(); for run in "$@"; do runs+=("$(cd "$run" && pwd)") || exit 2; done  # absolute, before the cd
+[ -n "${CONFIG:-}" ] && CONFIG=$(realpath "$CONFIG")
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader 2>&1 | tee "$LOGS/machine.txt"
 cd "$ROOT"
 step tests_render "${T_TESTS:-120}" env PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}" \
@@ -29,7 +31,7 @@ step tests_gpu "${T_TESTS:-120}" env TAICHI_GS_ARCH="$ARCH" PYTHONPATH="$ROOT${P
   $PY -m pytest -q -p no:cacheprovider -m gpu tests/test_gpu_backend.py
 step raster 60 env PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}" $PY bench/raster.py --arch "$ARCH" --quick
 arms="new"; [ -n "${BASELINE:-}" ] && arms="old new"
-for run in "$@"; do
+for run in "${runs[@]}"; do
   for arm in $arms; do
     code=$ROOT; [ "$arm" = old ] && code=$BASELINE
     name=$(basename "$run")_$arm; copy=$LOGS/run_$name
