@@ -215,3 +215,18 @@ def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupt
     a, b = read_splats(tmp_path / "whole" / "deblur" / "splats.ply"), read_splats(tmp_path / "resumed" / "deblur" / "splats.ply")
     np.testing.assert_allclose(b.means, a.means, atol=1e-5)
     np.testing.assert_allclose(b.sh, a.sh, atol=1e-4)
+
+
+def test_step_warning_names_the_worst_frame_and_a_k_that_fits() -> None:
+    """k = 7 at 2 px steps covers a 12 px exposure: 12.24 px warns (2.04 px steps, k = 8 fits), 12 px does not."""
+    from types import SimpleNamespace
+
+    from taichi_gs.stages.deblur import DeblurConfig, _step_warnings
+
+    frames = SimpleNamespace(K=np.diag([100.0, 100.0, 1.0]), median_depth=np.full(3, 2.0))
+    offsets = np.zeros((3, 2, 6))
+    offsets[:, 1, 0] = [0.12, 0.2448, 0.24]  # metres along x at 2 m: 6, 12.24 and 12 px on the image
+    config = DeblurConfig(k=7, max_step_px=2.0)
+    (warning,) = _step_warnings(offsets, [0, 1, 2], frames, config)
+    assert "2.04 px (frame 1)" in warning and "--k 8 " in warning
+    assert _step_warnings(offsets, [0, 2], frames, config) == []

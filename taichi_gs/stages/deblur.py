@@ -651,7 +651,7 @@ def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, confi
     if steps[worst] <= config.max_step_px:
         return []
     needed = math.ceil(steps[worst] * (config.k - 1) / config.max_step_px) + 1
-    return [f"adjacent virtual views move up to {steps[worst]:.1f} px (frame {train[worst]}) at the training "
+    return [f"adjacent virtual views move up to {steps[worst]:.2f} px (frame {train[worst]}) at the training "
             f"resolution, more than {config.max_step_px:g} px: k = {config.k} is likely too small for this blur "
             f"(--k {needed} keeps the steps under {config.max_step_px:g} px)"]
 
