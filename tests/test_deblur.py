@@ -131,7 +131,7 @@ def test_the_k_warning_follows_the_presets_step_target(preset, exposure_px, warn
     warnings = _step_warnings(offsets, [0, 1], frames, PRESETS[preset])
     assert bool(warnings) == warns
     if warns:  # 15 px over k = 7: 2.5 px steps; --k 9 gives 15 / 8 = 1.9 px, under fast's 2 px
-        assert "2.5 px (frame 1)" in warnings[0] and "--k 9 " in warnings[0]
+        assert "2.50 px (frame 1)" in warnings[0] and "--k 9 " in warnings[0]
 
 
 def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
@@ -217,13 +217,11 @@ def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupt
     np.testing.assert_allclose(b.sh, a.sh, atol=1e-4)
 
 
-def test_step_warning_names_the_worst_frame_and_a_k_that_fits() -> None:
+def test_the_k_warning_at_its_edge_names_the_worst_frame_to_the_hundredth_of_a_pixel() -> None:
     """k = 7 at 2 px steps covers a 12 px exposure: 12.24 px warns (2.04 px steps, k = 8 fits), 12 px does not."""
-    from types import SimpleNamespace
+    from taichi_gs.stages.deblur import DeblurConfig, _Frames, _step_warnings
 
-    from taichi_gs.stages.deblur import DeblurConfig, _step_warnings
-
-    frames = SimpleNamespace(K=np.diag([100.0, 100.0, 1.0]), median_depth=np.full(3, 2.0))
+    frames = _Frames([], [], np.full(3, 2.0), np.diag([100.0, 100.0, 1.0]))
     offsets = np.zeros((3, 2, 6))
     offsets[:, 1, 0] = [0.12, 0.2448, 0.24]  # metres along x at 2 m: 6, 12.24 and 12 px on the image
     config = DeblurConfig(k=7, max_step_px=2.0)
