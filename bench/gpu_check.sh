@@ -10,6 +10,11 @@
 # (where logs.tgz goes, /tmp/gpu_check), BASELINE (a code root holding taichi_gs/ to time first),
 # REMAP ("old=new": rewrite the sequence path in each copy's run.json), CONFIG (a --config TOML for
 # deblur), T_TESTS / T_STAGE (per-step time limits, s). Taichi must be importable by PY.
+#
+# Carrying taichi to a machine without it (2026-11-27: 64 MiB may travel, taichi 1.7.4's cp312 wheel is 56 MB):
+# unzip the wheel and the dill and plyfile wheels into one folder, drop taichi/_lib/c_api (the C API library,
+# unused from Python) and taichi-1.7.4.data, zip the rest (35 MB), then on the machine run
+# `python3 -m zipfile -e site.zip /tmp/site` and put /tmp/site on PYTHONPATH.
 set -u
 ARCH=${ARCH:-cuda}; PY=${PY:-python3}; OUT=${OUT:-/tmp/gpu_check}; LOGS=$(mktemp -d)
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
