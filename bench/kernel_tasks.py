@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ab import alternate, run_line
+from raster import parse_combo, scene
 
 MIN_MS = 0.05  # tasks under this many ms per pass are summed into "other tasks"
 
@@ -37,7 +38,6 @@ def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int) -> dict
     import taichi as ti
     from taichi.lang import impl
 
-    from raster import scene
     from taichi_gs.geometry import se3_exp
     from taichi_gs.kernels import runtime
 
@@ -84,11 +84,11 @@ def main() -> None:
     parser.add_argument("--baseline", type=Path, help="another code root to profile in the same run")
     parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # one process's raw result
     args = parser.parse_args()
-    n, size = args.combo.split(":")
     if args.json:
-        w, h = (int(x) for x in size.lower().split("x"))
-        print(json.dumps(profile_tasks(args.arch, int(n), (w, h), args.passes)))
+        n, (w, h) = parse_combo(args.combo)
+        print(json.dumps(profile_tasks(args.arch, n, (w, h), args.passes)))
         return
+    n, size = args.combo.split(":")
     rounds = alternate(__file__, ["--arch", args.arch, "--combo", args.combo, "--passes", str(args.passes)],
                        args.baseline, args.rounds)
 

@@ -185,12 +185,13 @@ def _kernels(dt) -> SimpleNamespace:
                               fallback, weight, keep, out, z_out)
 
     @ti.func
-    def pixel_pose(u, v, grad_out: ti.template(), anchor_rgb: ti.template(), z_in: ti.template(), view, R, t,
-                   intr, margin, weight):
-        """Target pixel (u, v)'s dL/d epsilon in one view (reads only)."""
-        X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = sample_at(
-            R @ target_ray(u, v, intr), z_in[view, v, u], t, intr, margin, anchor_rgb.shape[0], anchor_rgb.shape[1])
-        g = weight * rgb_at(grad_out, v, u)
+    def pixel_sample(u, v, z_in: ti.template(), view, R, t, intr, margin, hp, wp):
+        """:func:`sample_at` of target pixel (u, v) in one view, at the depth the forward found."""
+        return sample_at(R @ target_ray(u, v, intr), z_in[view, v, u], t, intr, margin, hp, wp)
+
+    @ti.func
+    def pose_of(X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y, g, anchor_rgb: ti.template(), intr):
+        """dL/d epsilon of one sample (:func:`pixel_sample`) whose colour gradient is g (reads only)."""
         g_sx = ti.cast(0.0, dt)
         g_sy = ti.cast(0.0, dt)
         for b in ti.static(range(TAPS)):
@@ -212,14 +213,10 @@ def _kernels(dt) -> SimpleNamespace:
         return pose
 
     @ti.func
-    def pixel_scatter(u, v, grad_out: ti.template(), z_in: ti.template(), view, R, t, intr, margin, weight,
-                      hp, wp, grad_anchor: ti.template(), lane, private: ti.template()):
-        """Add target pixel (u, v)'s share of dL/d anchor colour in one view: without atomics into lane
+    def scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor: ti.template(), lane, private: ti.template()):
+        """Add one sample's share of dL/d anchor colour (colour gradient g): without atomics into lane
         ``lane`` of ``grad_anchor``, the flat (lanes, Hp, Wp, 3) copies, when ``private`` (four runs of 12
         consecutive floats from one base index each); else atomically into ``grad_anchor`` (Hp, Wp, 3)."""
-        _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = sample_at(R @ target_ray(u, v, intr), z_in[view, v, u],
-                                                                         t, intr, margin, hp, wp)
-        g = weight * rgb_at(grad_out, v, u)
         for b in ti.static(range(TAPS)):
             y = y0 + b
             g_row = wy[b] * g
@@ -231,6 +228,23 @@ def _kernels(dt) -> SimpleNamespace:
                         grad_anchor[base + 3 * a + c] = grad_anchor[base + 3 * a + c] + share
                     else:
                         ti.atomic_add(grad_anchor[y, x0 + a, c], share)
+
+    @ti.func
+    def pixel_pose(u, v, grad_out: ti.template(), anchor_rgb: ti.template(), z_in: ti.template(), view, R, t,
+                   intr, margin, weight):
+        """Target pixel (u, v)'s dL/d epsilon in one view (reads only; the CPU backward's first pass)."""
+        X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
+                                                                       anchor_rgb.shape[0], anchor_rgb.shape[1])
+        return pose_of(X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y, weight * rgb_at(grad_out, v, u), anchor_rgb,
+                       intr)
+
+    @ti.func
+    def pixel_scatter(u, v, grad_out: ti.template(), z_in: ti.template(), view, R, t, intr, margin, weight,
+                      hp, wp, grad_anchor: ti.template(), lane, private: ti.template()):
+        """Target pixel (u, v)'s share of dL/d anchor colour in one view (the CPU backward's second pass)."""
+        _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
+                                                                            hp, wp)
+        scatter(x0, y0, wx, wy, weight * rgb_at(grad_out, v, u), hp, wp, grad_anchor, lane, private)
 
     @ti.kernel
     def backward_atomic(
@@ -248,9 +262,12 @@ def _kernels(dt) -> SimpleNamespace:
         for v, u in ti.ndrange(grad_out.shape[0], grad_out.shape[1]):  # GPU: a thread per pixel
             for view in range(n_views):
                 R, t = view_transform(transforms, view)
-                pose = pixel_pose(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight)
-                pixel_scatter(u, v, grad_out, z_in, view, R, t, intr, margin, weight, anchor_rgb.shape[0],
-                              anchor_rgb.shape[1], grad_anchor, 0, False)
+                hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
+                X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
+                                                                               hp, wp)
+                g = weight * rgb_at(grad_out, v, u)
+                pose = pose_of(X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y, g, anchor_rgb, intr)
+                scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor, 0, False)
                 for c in ti.static(range(N_POSE)):
                     ti.atomic_add(rows[v * n_views + view, c], pose[c])
 
