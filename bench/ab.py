@@ -6,6 +6,7 @@ prints one JSON object as its last line of output."""
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import json
 import os
@@ -15,6 +16,13 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options every script using this module takes: --rounds, --baseline and the hidden --json."""
+    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --baseline")
+    parser.add_argument("--baseline", type=Path, help="another code root to run in the same run")
+    parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # one process's raw result
 
 
 def run_in(root: Path, script: str, args: list[str]) -> dict:

@@ -16,11 +16,10 @@ import argparse
 import json
 import re
 import statistics
-from pathlib import Path
 
 import numpy as np
 
-from ab import alternate, run_line
+from ab import add_arguments, alternate, run_line
 from raster import parse_combo, scene
 
 MIN_MS = 0.05  # tasks under this many ms per pass are summed into "other tasks"
@@ -80,9 +79,7 @@ def main() -> None:
     parser.add_argument("--arch", default="cpu")
     parser.add_argument("--combo", default="100000:256x192", help="Gaussians:WxH")
     parser.add_argument("--passes", type=int, default=30)
-    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --baseline")
-    parser.add_argument("--baseline", type=Path, help="another code root to profile in the same run")
-    parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # one process's raw result
+    add_arguments(parser)
     args = parser.parse_args()
     if args.json:
         n, (w, h) = parse_combo(args.combo)

@@ -16,11 +16,10 @@ import argparse
 import json
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 
-from ab import alternate, run_line
+from ab import add_arguments, alternate, run_line
 
 KERNELS = ("l1_and_clipped_mse", "dssim", "masked_depth_l1", "warp_forward", "warp_backward")
 WARP_VIEWS = 6
@@ -102,9 +101,7 @@ def main() -> None:
     parser.add_argument("--arch", default="cpu")
     parser.add_argument("--size", nargs="+", default=["256x192", "320x240", "640x480"])
     parser.add_argument("--repeats", type=int, default=60)
-    parser.add_argument("--rounds", type=int, default=3, help="alternating rounds with --baseline")
-    parser.add_argument("--baseline", type=Path, help="another code root to time in the same run")
-    parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)  # one process's raw result
+    add_arguments(parser)
     args = parser.parse_args()
     if args.json:
         print(json.dumps(time_kernels(args.arch, [parse_size(s) for s in args.size], args.repeats)))
