@@ -43,7 +43,9 @@ for run in "${runs[@]}"; do
     rm -rf "$copy"; mkdir -p "$copy"; cp -r "$run"/pose "$run"/refine "$run"/run.json "$copy"/
     [ -n "${REMAP:-}" ] && sed -i "s#\"${REMAP%%=*}#\"${REMAP#*=}#" "$copy/run.json"
     cli="env PYTHONPATH=$code${PYTHONPATH:+:$PYTHONPATH} $PY -m taichi_gs.cli --arch $ARCH"
-    step "$name" "${T_STAGE:-300}" bash -c "time $cli deblur $copy --profile ${CONFIG:+--config $CONFIG} \
+    # from another directory: python -m puts the working directory ahead of PYTHONPATH, so in ROOT the
+    # baseline arm would import ROOT's code
+    step "$name" "${T_STAGE:-300}" bash -c "cd $LOGS && time $cli deblur $copy --profile ${CONFIG:+--config $CONFIG} \
       && $cli eval $copy --json > $LOGS/$name.eval.json"
     cp "$copy/profile.md" "$LOGS/$name.profile.md" 2>/dev/null
     rm -rf "$copy"; tar czf "$OUT/logs.tgz" -C "$LOGS" .

@@ -86,16 +86,17 @@ def work_model(s: dict) -> list[dict]:
                      "bytes": nbytes, "atomics": atomics, "note": note})
 
     def scan_cost(m):
-        """exclusive_scan of m elements: (launches, threads, bytes) over all levels."""
-        launches, threads, nbytes = 0, 0, 0
+        """exclusive_scan of m elements (one launch, a task per level): (tasks, threads, bytes) over the
+        levels that hold more than one block."""
+        tasks, threads, nbytes = 0, 0, 0
         while True:
             blocks = m // block + 1
-            launches += 1
+            tasks += 1
             threads += blocks * block
             nbytes += 2 * m * F + blocks * F
             if blocks == 1:
-                return launches, threads, nbytes
-            launches += 1
+                return tasks, threads, nbytes
+            tasks += 1
             threads += m + 1
             nbytes += 2 * (m + 1) * F + (m + 1) * F / block
             m = blocks
@@ -113,9 +114,9 @@ def work_model(s: dict) -> list[dict]:
     tpg = s["tiles_per_gaussian"]
     row("project_keys", n, "1 Gaussian (SH deg 0)", 0, n * (14 + P_WIDTH + 4 + 2) * F)
     radix_cost(n, 31, "depth sort")
-    row("count_tiles", n, "1 Gaussian", 0, n * (1 + 4 + 1) * F)
+    row("slot_offsets: count tiles", n, "1 Gaussian", 0, n * (1 + 4 + 1) * F)
     _, t, b = scan_cost(n)
-    row("exclusive_scan (slot offsets)", t, "1 element, 8 steps", 9, b)
+    row("slot_offsets: exclusive scan", t, "1 element, 8 steps", 9, b)
     row("emit_slots", n, f"tiles/Gaussian: mean {tpg.mean():.2f}, max {tpg.max()}", 0,
         n * 6 * F + slots * 3 * F)
     radix_cost(slots, max(1, int(n_tiles - 1).bit_length()), "tile sort")

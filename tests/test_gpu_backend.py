@@ -334,7 +334,8 @@ def test_prefix_sum_and_radix_sort_match_numpy(backend) -> None:
 
     scratch = scan.Scratch()
     rng = np.random.default_rng(0)
-    for n in (0, 1, 256, 257, 70_000, 300_000):  # 300k: grid-stride blocks on Vulkan
+    # 300k: grid-stride blocks on Vulkan; 256**3 + 12345: all four scan levels hold more than one element
+    for n in (0, 1, 256, 257, 70_000, 300_000, 256**3 + 12_345):
         x = rng.integers(0, 20, n).astype(np.int32)
         src, dst = ti.ndarray(ti.i32, (max(n, 1),)), ti.ndarray(ti.i32, (n + 1,))
         if n:

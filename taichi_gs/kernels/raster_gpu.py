@@ -6,8 +6,8 @@ loops:
 forward
   1. project every Gaussian (one thread each); key = its depth's f32 bit pattern (monotone for
      depth > 0), value = its index; LSD radix sort of the N pairs (4 passes of 8 bits);
-  2. per depth-sorted Gaussian, its tile count; exclusive multi-level scan -> slot offsets (no
-     atomics); each Gaussian writes its slots' tile ids in depth order; a stable radix sort by tile
+  2. per depth-sorted Gaussian, its tile count, then (same launch) an exclusive multi-level scan
+     -> slot offsets (no atomics); each Gaussian writes its slots' tile ids in depth order; a stable radix sort by tile
      id (1-2 passes) leaves every tile's slots front to back, ties broken by Gaussian index (the
      CPU order); tile ranges come from neighbouring keys; records are gathered tile-ordered;
   3. blend: one 256-thread block per 16x16 tile, one thread per pixel, the tile's records loaded
@@ -55,6 +55,7 @@ def make(dt) -> SimpleNamespace:
     fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
     ind = lambda ndim: ti.types.ndarray(dtype=ti.i32, ndim=ndim)  # noqa: E731
     sync = ti.simt.block.sync
+    scan_f = scan.funcs()
 
     @ti.kernel
     def project_keys(
@@ -86,14 +87,17 @@ def make(dt) -> SimpleNamespace:
             ids[g] = g
 
     @ti.kernel
-    def count_tiles(
+    def slot_offsets(
         n: ti.i32,
         order: ind(1),  # (N,) Gaussian ids in depth order
         rect: ind(2),  # (N, 4)
         counts: ind(1),  # output (N,): tiles touched by order[i]
+        offsets: ind(1),  # output (N + 1,): exclusive scan of counts, offsets[N] = the slot count
+        work: ind(1),  # (>= scan.scan_work_size(N),) scan levels
     ):
         for i in range(n):
             counts[i] = tiles.tile_count(rect, order[i])
+        scan_f.scan_levels(counts, 0, offsets, 0, work, 0, n)
 
     @ti.kernel
     def emit_slots(
@@ -101,7 +105,7 @@ def make(dt) -> SimpleNamespace:
         tiles_x: ti.i32,
         order: ind(1),  # (N,) depth order
         rect: ind(2),  # (N, 4)
-        offsets: ind(1),  # (N + 1,) exclusive scan of count_tiles
+        offsets: ind(1),  # (N + 1,) from slot_offsets
         tile_keys: ind(1),  # output (S,) tile id of each slot
         slot_ids: ind(1),  # output (S,) 0 .. S-1
         slot_gid: ind(1),  # output (S,) Gaussian id of each slot
@@ -121,14 +125,17 @@ def make(dt) -> SimpleNamespace:
     @ti.kernel
     def ranges_and_gather(
         n_slots: ti.i32,
+        n_tiles: ti.i32,
         sorted_tiles: ind(1),  # (S,) tile ids, sorted
         order: ind(1),  # (S,) slot ids in the same order
         slot_gid: ind(1),  # (S,)
         proj: fnd(2),  # (N, P_WIDTH)
         rect: ind(2),  # (N, 4)
-        tile_range: ind(2),  # output (T, 2): [start, end) of each tile's records (pre-zeroed)
+        tile_range: ind(2),  # output (T, 2): [start, end) of each tile's records, [0, 0) if none
         entries: fnd(2),  # output (S, E_WIDTH): records in tile order
     ):
+        for t, end in ti.ndrange(n_tiles, 2):
+            tile_range[t, end] = 0
         for j in range(n_slots):
             t = sorted_tiles[j]
             if j == 0 or sorted_tiles[j - 1] != t:
@@ -225,9 +232,12 @@ def make(dt) -> SimpleNamespace:
         d_rgb: fnd(3),  # (H, W, 3) dL/d image
         d_depth: fnd(2),  # (H, W)
         d_alpha: fnd(2),  # (H, W)
-        slot_grad: fnd(2),  # output (S, N_SLOT_GRADS) dL/d(screen record) per slot, added to (pre-zeroed)
+        n_slots: ti.i32,
+        slot_grad: fnd(2),  # output (S, N_SLOT_GRADS) dL/d(screen record) per slot
         subgroup: ti.template(),  # pre-sum over the subgroup before the atomics (Vulkan)
     ):
+        for j, c in ti.ndrange(n_slots, N_SLOT_GRADS):
+            slot_grad[j, c] = 0.0
         ti.loop_config(block_dim=PIXELS)
         for i in range(n_tiles * PIXELS):
             t, tid = i // PIXELS, i % PIXELS
@@ -379,7 +389,7 @@ def make(dt) -> SimpleNamespace:
                     dst[i // POSE_BLOCK, c] = buf[0, c]
 
     return SimpleNamespace(
-        project_keys=project_keys, count_tiles=count_tiles, emit_slots=emit_slots,
+        project_keys=project_keys, slot_offsets=slot_offsets, emit_slots=emit_slots,
         ranges_and_gather=ranges_and_gather, blend_forward=blend_forward, blend_backward=blend_backward,
         gaussian_backward=gaussian_backward, sum_rows=sum_rows,
     )
@@ -409,10 +419,9 @@ class GpuPipeline:
             cam, intr, width, height, view.proj, view.rect, keys, ids, gaussians.isotropic,
         )
         _, view.depth_order = scan.radix_sort(keys, ids, n, DEPTH_KEY_BITS, s, "depth_sort")
-        counts = s.get("counts", n)
-        self.k.count_tiles(n, view.depth_order, view.rect, counts)
         view.depth_offsets = s.get("offsets", n + 1)
-        scan.exclusive_scan(counts, view.depth_offsets, n, s)
+        self.k.slot_offsets(n, view.depth_order, view.rect, s.get("counts", n), view.depth_offsets,
+                            s.get("scan_work", scan.scan_work_size(n)))
         n_slots = int(view.depth_offsets[n])
         clock("project")
         tiles_x = -(-width // TILE)
@@ -423,9 +432,8 @@ class GpuPipeline:
         tile_bits = max(1, int(n_tiles - 1).bit_length())
         sorted_tiles, view.order = scan.radix_sort(tile_keys, slot_ids, n_slots, tile_bits, s, "tile_sort")
         view.tile_range = s.get("tile_range", n_tiles, ti.i32, (2,))
-        view.tile_range.fill(0)
         view.entries = s.get("entries", n_slots, self.dtype, (E_WIDTH,))
-        self.k.ranges_and_gather(n_slots, sorted_tiles, view.order, view.slot_gid, view.proj, view.rect,
+        self.k.ranges_and_gather(n_slots, n_tiles, sorted_tiles, view.order, view.slot_gid, view.proj, view.rect,
                                  view.tile_range, view.entries)
         clock("sort")
         self.k.blend_forward(tiles_x, n_tiles, width, height, view.tile_range, view.entries, bg,
@@ -439,11 +447,11 @@ class GpuPipeline:
         n = gaussians.n
         s = self.scratch
         slot_grad = s.get("slot_grad", view.n_slots, self.dtype, (N_SLOT_GRADS,))
-        slot_grad.fill(0.0)
         tiles_x = -(-width // TILE)
         n_tiles = tiles_x * -(-height // TILE)
         self.k.blend_backward(tiles_x, n_tiles, width, height, view.tile_range, view.order, view.entries, bg,
-                              view.transmittance, view.last, d_rgb, d_depth, d_alpha, slot_grad, self.subgroup)
+                              view.transmittance, view.last, d_rgb, d_depth, d_alpha, view.n_slots, slot_grad,
+                              self.subgroup)
         p, g = gaussians.params, gaussians.grads
         rows = s.get("pose_rows0", n, self.dtype, (6,))
         self.k.gaussian_backward(

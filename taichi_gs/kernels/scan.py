@@ -1,14 +1,17 @@
-"""GPU primitives on i32 ndarrays: multi-level exclusive prefix sums, a stable LSD radix sort of
-(key, value) pairs, and a multi-level row sum. Block-structured (256 threads, shared memory,
-``block.sync``), so they compile on CUDA, Vulkan and Metal only, never on Taichi's CPU backend.
+"""GPU primitives on i32 ndarrays: exclusive prefix sums and a stable LSD radix sort of (key, value)
+pairs, each one kernel launch. Block-structured (256 threads, shared memory, ``block.sync``), so they
+compile on CUDA, Vulkan and Metal only, never on Taichi's CPU backend.
 
 - scan: each block scans 256 elements in shared memory (Hillis-Steele, 8 steps) and writes its
-  total; the totals are scanned the same way (recursively) and added back.
+  total; the totals are scanned the same way, four levels deep (256**4 covers any i32 count), and
+  added back level by level. Every level is a top-level loop of one kernel, so the levels cost the
+  runtime's task launches, not Python's kernel calls (~50 us and ~10 us per ndarray each).
 - radix sort, 8-bit digits, one pass per digit: per-block digit histograms (shared-memory atomics)
   written digit-major, one exclusive scan of that table gives every (digit, block) its output base,
   then each block scatters its elements in index order, ranking equal digits among the 256
-  elements of a round by counting them in shared memory (stable, no global atomics).
-Python drives the levels and passes (a few launches each); buffers live in a :class:`Scratch`.
+  elements of a round by counting them in shared memory (stable, no global atomics). All passes
+  run in one kernel, ping-ponging between the input and a scratch pair.
+Buffers live in a :class:`Scratch`.
 """
 
 
@@ -22,6 +25,7 @@ from . import runtime
 
 BLOCK = 256
 LOG_BLOCK = 8
+SCAN_LEVELS = 4  # BLOCK ** SCAN_LEVELS = 2 ** 32 elements
 ITEMS = 4  # elements per thread in the radix passes
 CHUNK = BLOCK * ITEMS
 DIGIT_BITS = 8
@@ -50,17 +54,28 @@ class Scratch:
         return buf
 
 
+def scan_work_size(n: int) -> int:
+    """Elements of scan work space :func:`scan_levels` needs for an n-element scan."""
+    size = 0
+    for _ in range(SCAN_LEVELS):
+        n = n // BLOCK + 1  # the level's block totals, then their n + 1 scanned values
+        size += 2 * n + 1
+    return size
+
+
+def radix_work_size(n: int) -> int:
+    """Elements of work space the radix sort of n pairs needs: digit table, its scan, scan levels."""
+    table = RADIX * max(1, -(-n // CHUNK))
+    return 2 * table + 1 + scan_work_size(table)
+
+
 @functools.cache
-def _kernels() -> SimpleNamespace:
+def funcs() -> SimpleNamespace:
+    """The scan as a ``ti.func`` (``scan_levels``) for kernels that fuse it with their own loops."""
     sync = ti.simt.block.sync
 
-    @ti.kernel
-    def block_scan(
-        src: _ind,  # (>= n,)
-        dst: _ind,  # output (n + 1,)
-        sums: _ind,  # output (n // BLOCK + 1,) block totals
-        n: ti.i32,
-    ):
+    @ti.func
+    def block_scan(src: ti.template(), src_at, dst: ti.template(), dst_at, sums: ti.template(), sums_at, n):
         """dst[i] = sum of src[block start .. i) for i <= n (src[n] counts as 0); sums[b] = block total."""
         n_blocks = (n + BLOCK) // BLOCK
         ti.loop_config(block_dim=BLOCK)
@@ -70,7 +85,7 @@ def _kernels() -> SimpleNamespace:
             buf = ti.simt.block.SharedArray((2 * BLOCK,), ti.i32)
             x = 0
             if i < n:
-                x = src[i]
+                x = src[src_at + i]
             buf[tid] = x
             sync()
             for k in ti.static(range(LOG_BLOCK)):
@@ -81,27 +96,39 @@ def _kernels() -> SimpleNamespace:
                 sync()
             inclusive = buf[(LOG_BLOCK % 2) * BLOCK + tid]
             if i <= n:
-                dst[i] = inclusive - x
+                dst[dst_at + i] = inclusive - x
             if tid == BLOCK - 1:
-                sums[i // BLOCK] = inclusive
+                sums[sums_at + i // BLOCK] = inclusive
 
-    @ti.kernel
-    def add_block_offsets(
-        dst: _ind,  # (n + 1,) block-local scans, made global in place (output)
-        offsets: _ind,  # (n // BLOCK + 1,) exclusive scan of the block totals
-        n: ti.i32,
-    ):
+    @ti.func
+    def add_block_offsets(dst: ti.template(), dst_at, offsets: ti.template(), offsets_at, n):
+        """dst[i] += offsets[i // BLOCK] for i <= n: block-local scans made global."""
         for i in range(n + 1):
-            dst[i] = dst[i] + offsets[i // BLOCK]
+            dst[dst_at + i] = dst[dst_at + i] + offsets[offsets_at + i // BLOCK]
 
-    @ti.kernel
-    def digit_histogram(
-        keys: _ind,  # (>= n,)
-        n: ti.i32,
-        shift: ti.i32,  # the digit's lowest bit
-        n_blocks: ti.i32,  # ceil(n / CHUNK)
-        table: _ind,  # output (RADIX * n_blocks,), digit-major
-    ):
+    @ti.func
+    def scan_levels(src: ti.template(), src_at, dst: ti.template(), dst_at, work: ti.template(), work_at, n):
+        """dst[dst_at + i] = sum of src[src_at .. src_at + i) for i <= n, through ``work`` (at least
+        scan_work_size(n) elements from work_at). Level l keeps its block totals, then their scan."""
+        sizes = ti.Vector([0] * SCAN_LEVELS)  # elements scanned at each level
+        totals = ti.Vector([0] * SCAN_LEVELS)  # where each level's block totals start in work
+        scanned = ti.Vector([0] * SCAN_LEVELS)  # where their scan starts (level l scans totals[l - 1])
+        at, m = work_at, n
+        for level in ti.static(range(SCAN_LEVELS)):
+            sizes[level] = m
+            m = m // BLOCK + 1
+            totals[level] = at
+            scanned[level] = at + m
+            at += 2 * m + 1
+        block_scan(src, src_at, dst, dst_at, work, totals[0], n)
+        for level in ti.static(range(1, SCAN_LEVELS)):
+            block_scan(work, totals[level - 1], work, scanned[level - 1], work, totals[level], sizes[level])
+        for level in ti.static(range(SCAN_LEVELS - 2, 0, -1)):
+            add_block_offsets(work, scanned[level - 1], work, scanned[level], sizes[level])
+        add_block_offsets(dst, dst_at, work, scanned[0], n)
+
+    @ti.func
+    def digit_histogram(keys: ti.template(), n, shift, n_blocks, table: ti.template(), table_at):
         """table[d * n_blocks + b] = how many keys of block b have digit d at ``shift``."""
         ti.loop_config(block_dim=BLOCK)
         for i in range(n_blocks * BLOCK):
@@ -116,19 +143,11 @@ def _kernels() -> SimpleNamespace:
                 if e < n:
                     ti.atomic_add(hist[(keys[e] >> shift) & (RADIX - 1)], 1)
             sync()
-            table[tid * n_blocks + b] = hist[tid]
+            table[table_at + tid * n_blocks + b] = hist[tid]
 
-    @ti.kernel
-    def scatter(
-        keys: _ind,  # (>= n,)
-        vals: _ind,  # (>= n,)
-        n: ti.i32,
-        shift: ti.i32,
-        n_blocks: ti.i32,
-        base: _ind,  # (RADIX * n_blocks + 1,) exclusive scan of digit_histogram's table
-        out_keys: _ind,  # output (>= n,)
-        out_vals: _ind,  # output (>= n,)
-    ):
+    @ti.func
+    def scatter(keys: ti.template(), vals: ti.template(), n, shift, n_blocks, base: ti.template(), base_at,
+                out_keys: ti.template(), out_vals: ti.template()):
         """Stable scatter of block b's pairs to base[d * n_blocks + b] + rank among equal digits."""
         ti.loop_config(block_dim=BLOCK)
         for i in range(n_blocks * BLOCK):
@@ -138,7 +157,7 @@ def _kernels() -> SimpleNamespace:
             digits = ti.simt.block.SharedArray((BLOCK,), ti.i32)
             running = ti.simt.block.SharedArray((RADIX,), ti.i32)
             round_count = ti.simt.block.SharedArray((RADIX,), ti.i32)
-            running[tid] = base[tid * n_blocks + b]
+            running[tid] = base[base_at + tid * n_blocks + b]
             round_count[tid] = 0
             for k in range(ITEMS):
                 e = b * CHUNK + k * BLOCK + tid
@@ -162,36 +181,53 @@ def _kernels() -> SimpleNamespace:
                 round_count[tid] = 0
                 sync()
 
-    return SimpleNamespace(block_scan=block_scan, add_block_offsets=add_block_offsets,
-                           digit_histogram=digit_histogram, scatter=scatter)
+    @ti.func
+    def radix_pass(keys: ti.template(), vals: ti.template(), out_keys: ti.template(), out_vals: ti.template(), n,
+                   shift, work: ti.template()):
+        n_blocks = ti.max(1, (n + CHUNK - 1) // CHUNK)
+        table = RADIX * n_blocks
+        digit_histogram(keys, n, shift, n_blocks, work, 0)
+        scan_levels(work, 0, work, table, work, 2 * table + 1, table)
+        scatter(keys, vals, n, shift, n_blocks, work, table, out_keys, out_vals)
+
+    return SimpleNamespace(scan_levels=scan_levels, radix_pass=radix_pass)
 
 
-def exclusive_scan(src: ti.Ndarray, dst: ti.Ndarray, n: int, scratch: Scratch, level: int = 0) -> None:
+@functools.cache
+def _kernels() -> SimpleNamespace:
+    f = funcs()
+
+    @ti.kernel
+    def exclusive_scan_kernel(src: _ind, dst: _ind, work: _ind, n: ti.i32):
+        f.scan_levels(src, 0, dst, 0, work, 0, n)
+
+    @ti.kernel
+    def radix_sort_kernel(
+        keys: _ind, vals: _ind,  # (>= n,) the pairs; the result after an even number of passes
+        other_keys: _ind, other_vals: _ind,  # (>= n,) scratch; the result after an odd number
+        work: _ind,  # (>= radix_work_size(n),)
+        n: ti.i32,
+        passes: ti.template(),
+    ):
+        for p in ti.static(range(passes)):
+            if ti.static(p % 2 == 0):
+                f.radix_pass(keys, vals, other_keys, other_vals, n, p * DIGIT_BITS, work)
+            else:
+                f.radix_pass(other_keys, other_vals, keys, vals, n, p * DIGIT_BITS, work)
+
+    return SimpleNamespace(exclusive_scan=exclusive_scan_kernel, radix_sort=radix_sort_kernel)
+
+
+def exclusive_scan(src: ti.Ndarray, dst: ti.Ndarray, n: int, scratch: Scratch) -> None:
     """dst[0..n] = exclusive prefix sums of src[0..n), dst[n] = the total (dst holds n + 1)."""
-    k = _kernels()
-    n_blocks = n // BLOCK + 1
-    sums = scratch.get(f"scan_sums{level}", n_blocks)
-    k.block_scan(src, dst, sums, n)
-    if n_blocks > 1:
-        offsets = scratch.get(f"scan_offsets{level}", n_blocks + 1)
-        exclusive_scan(sums, offsets, n_blocks, scratch, level + 1)
-        k.add_block_offsets(dst, offsets, n)
+    _kernels().exclusive_scan(src, dst, scratch.get("scan_work", scan_work_size(n)), n)
 
 
 def radix_sort(keys: ti.Ndarray, vals: ti.Ndarray, n: int, bits: int, scratch: Scratch,
                name: str = "sort") -> tuple[ti.Ndarray, ti.Ndarray]:
     """Stable sort of the first n (key, value) pairs by the low ``bits`` bits of the (non-negative)
     keys. Returns the arrays that hold the result: (keys, vals) or the scratch pair."""
-    k = _kernels()
-    n_blocks = max(1, -(-n // CHUNK))
+    passes = -(-bits // DIGIT_BITS)
     other = (scratch.get(f"{name}_keys", n), scratch.get(f"{name}_vals", n))
-    table = scratch.get(f"{name}_table", RADIX * n_blocks)
-    base = scratch.get(f"{name}_base", RADIX * n_blocks + 1)
-    src = (keys, vals)
-    for shift in range(0, bits, DIGIT_BITS):
-        dst = other if src[0] is keys else (keys, vals)
-        k.digit_histogram(src[0], n, shift, n_blocks, table)
-        exclusive_scan(table, base, RADIX * n_blocks, scratch)
-        k.scatter(src[0], src[1], n, shift, n_blocks, base, dst[0], dst[1])
-        src = dst
-    return src
+    _kernels().radix_sort(keys, vals, *other, scratch.get(f"{name}_work", radix_work_size(n)), n, passes)
+    return (keys, vals) if passes % 2 == 0 else other
