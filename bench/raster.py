@@ -4,13 +4,16 @@ in the same run (so the speed ratio survives a noisy, shared machine).
 
     /work/venv/bin/python bench/raster.py [--arch cpu|cuda|vulkan|metal|auto] [--quick] [--combo N:WxH ...]
 
-On a GPU backend the grid is 100k / 500k / 1M Gaussians at 640x480 (the GPU targets).
+On a GPU backend the grid is 100k / 500k / 1M Gaussians at 640x480 (the GPU targets). "cores" is the
+process's CPU-seconds over wall seconds while forward + backward repeat (on a GPU backend: host threads).
+``TI_CPU_MAX_NUM_THREADS=1`` (Taichi reads it at init) gives the one-thread reference for a speed-up.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import platform
 import statistics
 import sys
@@ -65,13 +68,21 @@ def cpu_model() -> str:
 
 
 def median_time(fn, repeats: int) -> float:
+    return timed(fn, repeats)[0]
+
+
+def timed(fn, repeats: int) -> tuple[float, float]:
+    """(median wall seconds of ``repeats`` calls after a warm-up, CPU-seconds / wall seconds over them)."""
     fn()
     times = []
+    cpu0 = os.times()
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    cpu1 = os.times()
+    cpu = cpu1.user + cpu1.system - cpu0.user - cpu0.system
+    return statistics.median(times), cpu / sum(times)
 
 
 def main() -> None:
@@ -95,7 +106,7 @@ def main() -> None:
           "boxes per pixel")
     rast = Rasterizer(ti.f32)
     print(f"{'N':>8} {'res':>8} {'slots':>9} {'fwd ms':>8} {'fwd+bwd ms':>11} {'project':>8} {'sort':>7} "
-          f"{'blend':>7} {'backward':>9} {'cover':>6}")
+          f"{'blend':>7} {'backward':>9} {'cover':>6} {'cores':>6}")
     grid = [(n, res) for n in SIZES for res in RESOLUTIONS]
     if args.combo:
         combos = sorted(set(args.combo))
@@ -120,7 +131,7 @@ def main() -> None:
 
         repeats = 15 if n * width < 50_000 * 640 else 5
         t_fwd = median_time(forward, repeats)
-        t_all = median_time(forward_backward, repeats)
+        t_all, cores = timed(forward_backward, repeats)
         phases: dict = {}
         for _ in range(3):
             view = rast.forward(gs, cam, timings=phases)
@@ -132,7 +143,8 @@ def main() -> None:
         box = np.clip(rect[:, 2] - rect[:, 0] + 1, 0, None) * np.clip(rect[:, 3] - rect[:, 1] + 1, 0, None)
         cover = box.sum() / (width * height)
         print(f"{n:>8} {width}x{height:<4} {view.n_slots:>9} {1e3 * t_fwd:>8.1f} {1e3 * t_all:>11.1f} "
-              f"{ms['project']:>8.1f} {ms['sort']:>7.1f} {ms['blend']:>7.1f} {ms['backward']:>9.1f} {cover:>6.1f}",
+              f"{ms['project']:>8.1f} {ms['sort']:>7.1f} {ms['blend']:>7.1f} {ms['backward']:>9.1f} {cover:>6.1f} "
+              f"{cores:>6.2f}",
               flush=True)
 
     # same small scene through the NumPy reference renderer and the Taichi forward
