@@ -137,11 +137,13 @@ class BlurScene:
 
     def step(self, frame: np.ndarray, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
              k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None,
-             colour: np.ndarray | None = None, anchors: int = 0, fallback_depth: float | None = None) -> BlurStep:
+             colour: np.ndarray | None = None, anchors: int = 0, fallback_depth: float | None = None,
+             observe: bool = True) -> BlurStep:
         """Render the frame's k virtual views, average them, apply the frame's affine ``colour``
         transform (3 x 4; None: identity), take (1 - l_B) L1 + l_B D-SSIM against ``frame`` plus
         ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``, back-propagate,
-        and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians. [ours] ``anchors`` > 0:
+        and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians, adding the step's positional
+        gradients to the densification statistics when ``observe``. [ours] ``anchors`` > 0:
         render only that many padded anchor views (:func:`anchor_groups`) and warp the k views from them
         (``kernels.warp``); the mid view is then the anchor nearest the middle of the exposure, and
         ``fallback_depth`` is the depth where an anchor has no surface (None: :func:`median_depth` of ``depth``)."""
@@ -171,7 +173,8 @@ class BlurScene:
         grad_taus, pose_grads = exposure.backward(self.grad_blur, grad_depth)
         g_start, g_end = exposure_pose_gradients(base, d_start, d_end, grad_taus, pose_grads)
         if rates is not None:
-            self.density.observe(self.store, virtual_pose(base, d_start, d_end, exposure.mid_tau), self.K[0, 0])
+            if observe:
+                self.density.observe(self.store, virtual_pose(base, d_start, d_end, exposure.mid_tau), self.K[0, 0])
             self.store.step(vars(rates))
         return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
                         g_start, g_end, grad_colour)

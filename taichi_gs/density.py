@@ -43,6 +43,11 @@ class DensitySchedule:
         """True when ``done`` iterations end a densification interval inside the window."""
         return self.densify_from <= done <= self.densify_until and done % self.densify_every == 0
 
+    def observes(self, done: int) -> bool:
+        """True while the statistics of the step that ends at ``done`` iterations can still feed a
+        densification (after the window nobody reads them)."""
+        return done <= self.densify_until
+
     def split_limit(self, means: np.ndarray) -> float | np.ndarray:
         """The largest scale each Gaussian may keep and be cloned rather than split (metres)."""
         if self.split_px <= 0:

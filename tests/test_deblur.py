@@ -217,6 +217,28 @@ def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupt
     np.testing.assert_allclose(b.sh, a.sh, atol=1e-4)
 
 
+def test_densification_statistics_are_gathered_only_while_a_densification_can_read_them(tmp_path, monkeypatch):
+    """Training steps 1 .. densify_until add to the statistics, later ones do not (nothing reads them
+    after the window); the held-out fits, which freeze the scene, never do."""
+    from taichi_gs.density import DensityControl, DensitySchedule
+    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.standins import write_refine_outputs
+
+    schedule = DensitySchedule(10, 30, 10, 1.0, 0.01, 0.005, 0.1, 100)
+    assert schedule.observes(30) and not schedule.observes(31)
+    synth.generate(synth.SynthConfig(width=48, height=36, frames=4, trajectory="handheld", blur="extreme", seed=2),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    write_refine_outputs(sequence, tmp_path / "run", voxel=0.06)
+    config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=24, densify_from=5,
+                                 densify_until=15, densify_every=5, test_pose_iterations=2)
+    calls: list[int] = []
+    observe = DensityControl.observe
+    monkeypatch.setattr(DensityControl, "observe", lambda self, *a: (calls.append(len(calls)), observe(self, *a)))
+    run_deblur(sequence, tmp_path / "run", config)
+    assert len(calls) == 15
+
+
 def test_the_k_warning_at_its_edge_names_the_worst_frame_to_the_hundredth_of_a_pixel() -> None:
     """k = 7 at 2 px steps covers a 12 px exposure: 12.24 px warns (2.04 px steps, k = 8 fits), 12 px does not."""
     from taichi_gs.stages.deblur import DeblurConfig, _Frames, _step_warnings

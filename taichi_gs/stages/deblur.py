@@ -417,10 +417,12 @@ def run_deblur(
                       quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
                       colors=config.lr_colors)
         k, anchors = _exposure_sampling(offsets[frame], frames, frame, config, fraction)
+        # the density schedule in this phase's pixels (coarse-to-fine changes the training width)
+        density = density_schedule(config, extent, model.width, centres, frames.K[0, 0])
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
                           k, config.lambda_dssim, config.lambda_depth, rates,
                           colours[frame] if config.colour_affine else None,
-                          anchors=anchors, fallback_depth=frames.median_depth[frame])
+                          anchors=anchors, fallback_depth=frames.median_depth[frame], observe=density.observes(it + 1))
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
@@ -432,8 +434,6 @@ def run_deblur(
             + config.lambda_depth * step.losses["depth"]
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
-        # the density schedule in this phase's pixels (coarse-to-fine changes the training width)
-        density = density_schedule(config, extent, model.width, centres, frames.K[0, 0])
         also = None
         if config.densify_by != "gradient" and density.densifies(it + 1):
             also = error_rows(model, frames, train, poses, offsets, colours if config.colour_affine else None,
