@@ -6,10 +6,11 @@ loops:
 forward
   1. project every Gaussian (one thread each); key = its depth's f32 bit pattern (monotone for
      depth > 0), value = its index; LSD radix sort of the N pairs (4 passes of 8 bits);
-  2. per depth-sorted Gaussian, its tile count, then (same launch) an exclusive multi-level scan
-     -> slot offsets (no atomics); each Gaussian writes its slots' tile ids in depth order; a stable radix sort by tile
-     id (1-2 passes) leaves every tile's slots front to back, ties broken by Gaussian index (the
-     CPU order); tile ranges come from neighbouring keys; records are gathered tile-ordered;
+  2. per depth-sorted Gaussian, its tile count, then (same launch) an exclusive multi-level
+     scan -> slot offsets (no atomics); each Gaussian writes its slots' tile ids in depth order; a
+     stable radix sort by tile id (1-2 passes) leaves every tile's slots front to back, ties broken
+     by Gaussian index (the CPU order); tile ranges come from neighbouring keys; records are
+     gathered tile-ordered; each scan and each whole radix sort is one kernel launch;
   3. blend: one 256-thread block per 16x16 tile, one thread per pixel, the tile's records loaded
      in batches of 256 into shared memory between ``block.sync()``s, per-pixel state in
      registers; the block stops once every pixel is saturated (a shared counter read between

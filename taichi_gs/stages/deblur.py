@@ -422,7 +422,8 @@ def run_deblur(
         step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
                           k, config.lambda_dssim, config.lambda_depth, rates,
                           colours[frame] if config.colour_affine else None,
-                          anchors=anchors, fallback_depth=frames.median_depth[frame], observe=density.observes(it + 1))
+                          anchors=anchors, fallback_depth=frames.median_depth[frame],
+                          observe=density.observes(it + 1))
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
