@@ -108,11 +108,12 @@ def main(
 
 
 def _open3d_version() -> str:
+    from .icp import open3d
+
     try:
-        import open3d
+        return open3d().__version__
     except ImportError:
         return "not installed (stage 1 needs it; stages 2 and 3 run without it)"
-    return open3d.__version__
 
 
 @app.command()

@@ -51,7 +51,7 @@ def span_at(j, w, span: ti.template()):
     """Row v and pixel columns [u0, u1) of span j of an image w pixels wide."""
     v, u0, u1 = j, 0, w
     if ti.static(span > 0):
-        n = (w + span - 1) // span
+        n = per_row(w, span)
         v = j // n
         u0 = (j - v * n) * span
         u1 = ti.min(u0 + span, w)
