@@ -1,13 +1,13 @@
-"""Stage 3's per-pixel kernels outside the rasterizer: the image losses (L1 + clipped MSE, D-SSIM, masked
-depth L1; value and gradient in one call each) and the warped virtual views (forward and backward of six
-views warped from one padded anchor render), float32 on the chosen backend, median over repeats after a
-warm-up.
+"""The per-pixel kernels outside the rasterizer: stage 3's image losses (L1 + clipped MSE, D-SSIM, masked
+depth L1; value and gradient in one call each), stage 2's depth terms (alpha-normalised depth L1 and
+coverage) and the warped virtual views (forward and backward of six views warped from one padded anchor
+render), float32 on the chosen backend, median over repeats after a warm-up.
 
     python bench/pixel_kernels.py [--arch cpu] [--size 256x192 ...] [--repeats 60] [--rounds 3] [--baseline ROOT]
 
 ``--baseline ROOT`` times the same kernels from another code root in alternating rounds (see ``ab.py``)
-and prints the ratio of this tree's median to the baseline's. (Before 2026-11-27 this script was
-``bench/losses.py`` and timed the losses only.)
+and prints the ratio of this tree's median to the baseline's ("-" for a kernel the baseline lacks).
+(Before 2026-11-27 this script was ``bench/losses.py`` and timed the losses only.)
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 
 from ab import add_arguments, alternate, run_line
 
-KERNELS = ("l1_and_clipped_mse", "dssim", "masked_depth_l1", "warp_forward", "warp_backward")
+KERNELS = ("l1_and_clipped_mse", "dssim", "masked_depth_l1", "stage2_depth_terms", "warp_forward", "warp_backward")
 WARP_VIEWS = 6
 WARP_MARGIN = 8
 
@@ -64,6 +64,8 @@ def time_kernels(arch: str, sizes: list[tuple[int, int]], repeats: int) -> dict[
         p, t, g = (to_device(a, ti.f32) for a in (pred, target, np.zeros_like(pred)))
         dp, dt, dg = (to_device(a, ti.f32) for a in (rng.uniform(1, 2, (h, w)), rng.uniform(0, 2, (h, w)),
                                                       np.zeros((h, w))))
+        trans = to_device(rng.uniform(0, 0.8, (h, w)), ti.f32)
+        grad_alpha = to_device(np.zeros((h, w)), ti.f32)
         hp, wp = h + 2 * WARP_MARGIN, w + 2 * WARP_MARGIN
         K = np.array([[0.85 * w, 0, w / 2], [0, 0.85 * w, h / 2], [0, 0, 1.0]])
         anchor = to_device(rng.uniform(0, 1, (hp, wp, 3)), ti.f32)
@@ -76,12 +78,16 @@ def time_kernels(arch: str, sizes: list[tuple[int, int]], repeats: int) -> dict[
         calls = {"l1_and_clipped_mse": lambda: losses.l1_and_clipped_mse(p, t, g, weight=0.8),
                  "dssim": lambda: losses.dssim(p, t, g, weight=0.2),
                  "masked_depth_l1": lambda: losses.masked_depth_l1(dp, dt, dg, weight=0.1),
+                 "stage2_depth_terms": lambda: losses.normalised_depth_l1_and_coverage(dp, trans, dt, dg, grad_alpha,
+                                                                                       0.5, 1.0, 0.3),
                  "warp_forward": lambda: warp.accumulate(anchor, anchor_depth, anchor_trans, views, K, WARP_MARGIN,
                                                          2.0, 1 / WARP_VIEWS, warped, z, first=True),
                  "warp_backward": lambda: warp.backward(t, anchor, z, views, K, WARP_MARGIN, 1 / WARP_VIEWS,
                                                         grad_anchor)}
         row = {}
         for name in KERNELS:
+            if not hasattr(losses, "normalised_depth_l1_and_coverage") and name == "stage2_depth_terms":
+                continue  # a baseline root from before stage 2's loss moved onto the device
             for _ in range(3):
                 calls[name]()
             ti.sync()
@@ -116,7 +122,9 @@ def main() -> None:
         for kernel in KERNELS:
             ours = statistics.median(r[size][kernel] for r in rounds["this tree"])
             cells = f"| {size} | {kernel} | {ours:.2f} |"
-            if args.baseline:
+            if args.baseline and kernel not in rounds["baseline"][0][size]:
+                cells += " - | - |"
+            elif args.baseline:
                 base = statistics.median(r[size][kernel] for r in rounds["baseline"])
                 cells += f" {base:.2f} | {ours / base:.2f} |"
             print(cells)

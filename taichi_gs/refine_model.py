@@ -8,31 +8,11 @@ import numpy as np
 
 from .gaussian_store import GaussianStore, morton_order
 from .geometry import raster_intrinsics
-from .render import Camera, Rasterizer, losses, to_device
+from .render import Camera, Rasterizer, losses, np_dtype, to_device
 from .splats import logit
 
 FIXED_SCALE = ("means", "opacity_logits")
 FREE_SCALE = FIXED_SCALE + ("log_scales", "quats")
-
-
-def depth_losses(depth: np.ndarray, transmittance: np.ndarray, target: np.ndarray, min_alpha: float,
-                 weight: float, coverage_weight: float) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """Alpha-normalised depth L1 and coverage loss of one render against its input depth.
-
-    depth: mean ``|D / alpha - target|`` over pixels with target > 0 and alpha >= ``min_alpha``;
-    coverage: mean ``1 - alpha`` over pixels with target > 0 (holes in the surface). Returns both
-    and the gradients of ``weight * depth + coverage_weight * coverage`` with respect to the
-    blended depth D and to alpha (= 1 - transmittance)."""
-    alpha = 1.0 - transmittance
-    valid = target > 0
-    mask = valid & (alpha >= min_alpha)
-    count, n_valid = max(int(mask.sum()), 1), max(int(valid.sum()), 1)
-    safe = np.where(mask, alpha, 1.0)
-    residual = np.where(mask, depth / safe - target, 0.0)
-    g = weight * np.sign(residual) / count
-    d_alpha = -g * depth / safe**2 - coverage_weight * valid / n_valid
-    coverage = float((1.0 - alpha)[valid].sum() / n_valid)
-    return float(np.abs(residual).sum() / count), coverage, g / safe, d_alpha
 
 
 class DepthRefiner:
@@ -64,6 +44,7 @@ class DepthRefiner:
         if free_scale:
             arrays["quats"] = np.tile(np.array([1, 0, 0, 0], np.float32), (n, 1))
         self.store = GaussianStore(arrays, self.trained, isotropic=not free_scale)
+        self.target_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_alpha = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
 
@@ -81,16 +62,18 @@ class DepthRefiner:
         """Render one camera, add its weighted loss gradients to the Gaussians; (depth, coverage, dL/dpose)."""
         view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height),
                                        with_colour=False)
-        depth, coverage, d_depth, d_alpha = depth_losses(
-            view.depth.to_numpy(), view.transmittance.to_numpy(), target_depth, self.min_alpha, weight,
-            coverage_weight)
-        self.grad_depth.from_numpy(d_depth.astype(np.float32))
-        self.grad_alpha.from_numpy(d_alpha.astype(np.float32))
+        self.target_depth.from_numpy(np.ascontiguousarray(target_depth, np_dtype(self.gaussians.dtype)))
+        self.grad_depth.fill(0.0)
+        self.grad_alpha.fill(0.0)
+        depth, coverage = losses.normalised_depth_l1_and_coverage(
+            view.depth, view.transmittance, self.target_depth, self.grad_depth, self.grad_alpha, self.min_alpha,
+            weight, coverage_weight)
         pose_grad = self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha)
         return depth, coverage, pose_grad
 
     def step(self, target_depths: list[np.ndarray], cam_to_worlds: list[np.ndarray], lambda_depth: float,
-             lambda_coverage: float, lambda_opacity: float, lrs: dict[str, float]) -> tuple[dict[str, float], list[np.ndarray]]:
+             lambda_coverage: float, lambda_opacity: float,
+             lrs: dict[str, float]) -> tuple[dict[str, float], list[np.ndarray]]:
         """One iteration over one or more cameras; returns the loss values and dL/d(pose) (6,) per camera.
 
         ``lrs`` maps each trained parameter name to its learning rate (missing names: 0)."""

@@ -111,6 +111,11 @@ def kernel_outputs() -> dict[str, np.ndarray]:
     grad = dev(np.zeros(logits.shape))
     out["opacity"] = np.array([losses.opacity_binarization(dev(logits), grad, len(logits), weight=0.5)])
     out["d_opacity"] = grad.to_numpy()
+    trans = rng.uniform(0.0, 0.8, depth_pred.shape)  # stage 2's terms: blended depth = alpha x surface depth
+    grad_depth, grad_alpha = dev(np.zeros(trans.shape)), dev(np.zeros(trans.shape))
+    out["stage2_depth"] = np.array(losses.normalised_depth_l1_and_coverage(
+        dev(depth_pred * (1 - trans)), dev(trans), dev(depth_target), grad_depth, grad_alpha, 0.5, 1.3, 0.4))
+    out["d_stage2_depth"], out["d_stage2_alpha"] = grad_depth.to_numpy(), grad_alpha.to_numpy()
     views = [rng.uniform(size=(37, 45, 3)) for _ in range(4)]
     avg = dev(np.zeros((37, 45, 3)))
     out["blur_average"] = blur.average([dev(v) for v in views], avg).to_numpy()

@@ -1,6 +1,7 @@
-"""Stage 2's loss (alpha-normalised masked depth L1 + coverage) and its hand-written gradient,
-against central finite differences in float64: alone (w.r.t. the rendered depth and transmittance)
-and composed with the rasterizer (w.r.t. Gaussian centres, opacities and the camera pose)."""
+"""Stage 2's loss (alpha-normalised masked depth L1 + coverage) and its hand-written gradient: a NumPy
+reference against central finite differences in float64, the device kernel
+(``losses.normalised_depth_l1_and_coverage``) against that reference, and the kernel composed with the
+rasterizer against finite differences (w.r.t. Gaussian centres, opacities and the camera pose)."""
 
 from __future__ import annotations
 
@@ -8,13 +9,73 @@ import numpy as np
 import taichi as ti
 
 from taichi_gs.geometry import se3_exp
+from taichi_gs.kernels import losses, runtime
 from taichi_gs.kernels.splat import Camera, DeviceGaussians, Rasterizer, to_device
-from taichi_gs.refine_model import depth_losses
 
 WIDTH, HEIGHT = 40, 32
 K = np.array([[36.0, 0.0, 19.6], [0.0, 35.0, 15.8], [0.0, 0.0, 1.0]])
 POSE = se3_exp(np.array([0.05, -0.1, 0.02, 0.03, -0.05, 0.02]))
 MIN_ALPHA, WEIGHT, COVERAGE = 0.5, 1.3, 0.4
+
+
+def depth_losses(depth: np.ndarray, transmittance: np.ndarray, target: np.ndarray, min_alpha: float,
+                 weight: float, coverage_weight: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """Reference in NumPy: (depth term, coverage, d/d blended depth, d/d alpha) of
+    ``weight * depth term + coverage_weight * coverage`` (see ``losses.normalised_depth_l1_and_coverage``)."""
+    alpha = 1.0 - transmittance
+    valid = target > 0
+    mask = valid & (alpha >= min_alpha)
+    count, n_valid = max(int(mask.sum()), 1), max(int(valid.sum()), 1)
+    safe = np.where(mask, alpha, 1.0)
+    residual = np.where(mask, depth / safe - target, 0.0)
+    g = weight * np.sign(residual) / count
+    d_alpha = -g * depth / safe**2 - coverage_weight * valid / n_valid
+    coverage = float((1.0 - alpha)[valid].sum() / n_valid)
+    return float(np.abs(residual).sum() / count), coverage, g / safe, d_alpha
+
+
+def device_losses(depth: np.ndarray, transmittance: np.ndarray, target: np.ndarray, dtype=ti.f64,
+                  grad_depth: np.ndarray | None = None, grad_alpha: np.ndarray | None = None):
+    """The kernel's (depth term, coverage, d/d depth, d/d alpha) for NumPy inputs (gradients added to the given
+    starting values, zero by default)."""
+    runtime.init()
+    grads = [to_device(np.zeros_like(depth) if g is None else g, dtype) for g in (grad_depth, grad_alpha)]
+    d, c = losses.normalised_depth_l1_and_coverage(to_device(depth, dtype), to_device(transmittance, dtype),
+                                                   to_device(target, dtype), *grads, MIN_ALPHA, WEIGHT, COVERAGE)
+    return d, c, grads[0].to_numpy(), grads[1].to_numpy()
+
+
+def _random_view(rng, height=HEIGHT, width=WIDTH):
+    """(depth, transmittance, target): about 20% of pixels without input depth, some under min_alpha."""
+    transmittance = rng.uniform(0.0, 0.8, (height, width))
+    target = rng.uniform(1.0, 3.0, (height, width)) * (rng.uniform(size=(height, width)) > 0.2)
+    depth = (target + rng.normal(0, 0.2, target.shape)) * (1 - transmittance)  # alpha x surface depth
+    return depth, transmittance, target
+
+
+def test_the_device_kernel_matches_the_reference():
+    rng = np.random.default_rng(7)
+    depth, transmittance, target = _random_view(rng, 37, 53)  # rows longer than one GPU span
+    transmittance[0, :5] = 1.0 - MIN_ALPHA  # alpha exactly at the threshold counts
+    depth[1, :5] = target[1, :5] * (1.0 - transmittance[1, :5])  # residual 0: no depth gradient
+    expected = depth_losses(depth, transmittance, target, MIN_ALPHA, WEIGHT, COVERAGE)
+    start = rng.normal(size=(2,) + depth.shape)
+    got = device_losses(depth, transmittance, target, grad_depth=start[0], grad_alpha=start[1])
+    assert np.isclose(got[0], expected[0], rtol=1e-12) and np.isclose(got[1], expected[1], rtol=1e-12)
+    np.testing.assert_allclose(got[2] - start[0], expected[2], rtol=1e-10, atol=1e-15)  # added, not written
+    np.testing.assert_allclose(got[3] - start[1], expected[3], rtol=1e-10, atol=1e-15)
+    depth, transmittance, target = _random_view(rng, 37, 53)  # float32 (production): no exact ties
+    expected = depth_losses(depth, transmittance, target, MIN_ALPHA, WEIGHT, COVERAGE)
+    f32 = device_losses(depth, transmittance, target, dtype=ti.f32)
+    assert np.isclose(f32[0], expected[0], rtol=1e-5) and np.isclose(f32[1], expected[1], rtol=1e-5)
+    np.testing.assert_allclose(f32[2], expected[2], rtol=1e-4, atol=1e-9)
+    np.testing.assert_allclose(f32[3], expected[3], rtol=1e-4, atol=1e-9)
+
+
+def test_a_view_without_input_depth_has_no_loss():
+    depth, transmittance, target = _random_view(np.random.default_rng(8))
+    d, c, g_depth, g_alpha = device_losses(depth, transmittance, np.zeros_like(target))
+    assert d == 0.0 and c == 0.0 and not g_depth.any() and not g_alpha.any()
 
 
 def _total(depth, transmittance, target) -> float:
@@ -24,10 +85,7 @@ def _total(depth, transmittance, target) -> float:
 
 def test_depth_loss_gradient_matches_finite_differences():
     rng = np.random.default_rng(0)
-    transmittance = rng.uniform(0.0, 0.8, (HEIGHT, WIDTH))
-    alpha = 1 - transmittance
-    target = rng.uniform(1.0, 3.0, (HEIGHT, WIDTH)) * (rng.uniform(size=(HEIGHT, WIDTH)) > 0.2)
-    depth = (target + rng.normal(0, 0.2, target.shape)) * alpha  # blended depth = alpha x surface depth
+    depth, transmittance, target = _random_view(rng)
     _, _, d_depth, d_alpha = depth_losses(depth, transmittance, target, MIN_ALPHA, WEIGHT, COVERAGE)
     h = 1e-7
     for name, base, analytic, sign in (("depth", depth, d_depth, 1.0), ("alpha", transmittance, d_alpha, -1.0)):
@@ -64,7 +122,7 @@ class _Stage2LossF64:
 
     def gradients(self, means, logits, pose):
         view, depth, transmittance = self._render(means, logits, pose)
-        _, _, d_depth, d_alpha = depth_losses(depth, transmittance, self.target, MIN_ALPHA, WEIGHT, COVERAGE)
+        _, _, d_depth, d_alpha = device_losses(depth, transmittance, self.target)
         self.gs.zero_grad()
         pose_grad = self.rast.backward(self.gs, view, d_depth=to_device(d_depth, ti.f64),
                                        d_alpha=to_device(d_alpha, ti.f64))

@@ -7,6 +7,9 @@ given gradient ndarray, so several terms can share one gradient buffer before a 
   (e.g. only pixels the camera saw, not the unsourced border of an undistorted frame).
 - :func:`l1_and_clipped_mse`: the same, and the mean of ``(clip(pred, 0, 1) - target)^2`` (for PSNR).
 - :func:`masked_depth_l1`: mean over pixels with ``target > 0`` of ``|pred - target|`` (H, W).
+- :func:`normalised_depth_l1_and_coverage`: stage 2's terms, the mean ``|depth / alpha - target|`` over
+  pixels with depth and enough opacity, and the mean ``1 - alpha`` over pixels with depth; gradients
+  w.r.t. the blended depth and alpha.
 - :func:`dssim`: ``1 - mean SSIM`` with an 11x11 Gaussian window (sigma 1.5, zero padding),
   C1 = 0.01^2, C2 = 0.03^2, as 3DGS; gradient w.r.t. ``pred`` only.
 - :func:`opacity_binarization`: ``sum_j o_j^2 (1 - o_j)^2`` with ``o = sigmoid(logit)``,
@@ -119,6 +122,47 @@ def _kernels(dt) -> SimpleNamespace:
                         diff = pred[v, u] - target[v, u]
                         grad[v, u] = grad[v, u] + weight / count * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
         return total / count
+
+    @ti.func
+    def depth_pixel(depth: ti.template(), trans: ti.template(), target: ti.template(), v, u, min_alpha):
+        """(has depth, counted in the depth term, alpha where counted else 1, transmittance, blended depth,
+        target) of pixel (v, u) of stage 2's terms; branch-free (selects): data-dependent branches per pixel
+        cost more than the arithmetic."""
+        t, tr, d = target[v, u], trans[v, u], depth[v, u]
+        valid = ti.cast(t > 0, dt)
+        inside = valid * ti.cast(1.0 - tr >= min_alpha, dt)
+        return valid, inside, ti.select(inside > 0, 1.0 - tr, 1.0), tr, d, t
+
+    @ti.kernel
+    def normalised_depth_l1_and_coverage(depth: fnd(2), trans: fnd(2), target: fnd(2), grad_depth: fnd(2),
+                                         grad_alpha: fnd(2), min_alpha: dt, weight: dt, coverage_weight: dt,
+                                         parts: fnd(2), rows: fnd(2), coverage: fnd(1)) -> dt:
+        h, w = depth.shape[0], depth.shape[1]
+        n_spans = row_spans.span_count(h, w, span)
+        for i in range(n_spans * spread):  # sums: |residual|, its pixels, 1 - alpha, pixels with depth
+            if i % spread == 0:
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
+                acc = ti.Vector.zero(dt, 4)
+                for u in range(u0, u1):
+                    valid, inside, alpha, tr, d, t = depth_pixel(depth, trans, target, v, u, min_alpha)
+                    acc += ti.Vector([inside * ti.abs(d / alpha - t), inside, valid * tr, valid], dt=dt)
+                for q in ti.static(range(4)):
+                    parts[i // spread, q] = acc[q]
+        sums = totals(parts, rows, h, w, 4)
+        count, n_valid = ti.max(sums[1], 1.0), ti.max(sums[3], 1.0)
+        for i in range(n_spans * spread):
+            if i % spread == 0:
+                v, u0, u1 = row_spans.span_at(i // spread, w, span)
+                for u in range(u0, u1):
+                    valid, inside, alpha, _tr, d, t = depth_pixel(depth, trans, target, v, u, min_alpha)
+                    g_depth0, g_alpha0 = grad_depth[v, u], grad_alpha[v, u]  # reads before the writes
+                    residual = d / alpha - t
+                    sign = ti.cast(residual > 0, dt) - ti.cast(residual < 0, dt)
+                    g_depth = inside * weight / count * sign / alpha
+                    grad_depth[v, u] = g_depth0 + g_depth
+                    grad_alpha[v, u] = g_alpha0 - g_depth * d / alpha - valid * coverage_weight / n_valid
+        coverage[0] = sums[2] / n_valid
+        return sums[0] / count
 
     # D-SSIM's four passes check the window's taps against the image edge only near it: rows and columns at
     # least SSIM_RADIUS pixels inside run unchecked (branch-free) sums, adding the taps in the same order.
@@ -270,7 +314,8 @@ def _kernels(dt) -> SimpleNamespace:
         return total_of(rows, n_chunks, 1)[0]
 
     return SimpleNamespace(l1=l1, masked_depth_l1=masked_depth_l1, dssim=dssim,
-                           opacity_binarization=opacity_binarization)
+                           opacity_binarization=opacity_binarization,
+                           normalised_depth_l1_and_coverage=normalised_depth_l1_and_coverage)
 
 
 _scratch: dict[tuple, ti.Ndarray] = {}
@@ -350,6 +395,22 @@ def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weig
     """Mean ``|pred - target|`` over pixels with target > 0 of (H, W) depth maps; adds to ``grad``."""
     dt = _checked(pred, target, grad)
     return float(_kernels(dt).masked_depth_l1(pred, target, grad, weight, *_partials(pred, 2)))
+
+
+def normalised_depth_l1_and_coverage(depth: ti.Ndarray, transmittance: ti.Ndarray, target: ti.Ndarray,
+                                     grad_depth: ti.Ndarray, grad_alpha: ti.Ndarray, min_alpha: float,
+                                     weight: float = 1.0, coverage_weight: float = 1.0) -> tuple[float, float]:
+    """Stage 2's depth terms of one render (H, W): the mean ``|depth / alpha - target|`` over pixels with
+    target > 0 and alpha = 1 - transmittance >= ``min_alpha``, and the coverage loss, the mean ``1 - alpha``
+    over pixels with target > 0. Adds the gradients of ``weight * depth term + coverage_weight * coverage``
+    w.r.t. the blended depth to ``grad_depth`` and w.r.t. alpha to ``grad_alpha``; returns both terms."""
+    dt = _checked(depth, target, grad_depth)
+    _checked(transmittance, target, grad_alpha)
+    coverage = _buffer("coverage", dt, (1,))
+    value = _kernels(dt).normalised_depth_l1_and_coverage(depth, transmittance, target, grad_depth, grad_alpha,
+                                                          min_alpha, weight, coverage_weight,
+                                                          *_partials(depth, 4), coverage)
+    return float(value), float(coverage[0])
 
 
 def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
