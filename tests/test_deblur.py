@@ -130,8 +130,8 @@ def test_the_k_warning_follows_the_presets_step_target(preset, exposure_px, warn
     frames = _Frames([], [], np.array([depth, depth]), np.array([[focal, 0, 0], [0, focal, 0], [0, 0, 1.0]]))
     warnings = _step_warnings(offsets, [0, 1], frames, PRESETS[preset])
     assert bool(warnings) == warns
-    if warns:  # 15 px over k = 7: 2.5 px steps; --k 9 gives 15 / 8 = 1.9 px, under fast's 2 px
-        assert "2.50 px (frame 1)" in warnings[0] and "--k 9 " in warnings[0]
+    if warns:  # 15 px over k = 8: 2.14 px steps; --k 9 gives 15 / 8 = 1.9 px, under fast's 2 px
+        assert "2.14 px (frame 1)" in warnings[0] and "--k 9 " in warnings[0]
 
 
 def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
