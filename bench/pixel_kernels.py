@@ -85,9 +85,10 @@ def time_kernels(arch: str, sizes: list[tuple[int, int]], repeats: int) -> dict[
                  "warp_backward": lambda: warp.backward(t, anchor, z, views, K, WARP_MARGIN, 1 / WARP_VIEWS,
                                                         grad_anchor)}
         row = {}
-        for name in KERNELS:
-            if not hasattr(losses, "normalised_depth_l1_and_coverage") and name == "stage2_depth_terms":
-                continue  # a baseline root from before stage 2's loss moved onto the device
+        # a baseline root from before stage 2's depth terms moved onto the device lacks that kernel
+        if not hasattr(losses, "normalised_depth_l1_and_coverage"):
+            del calls["stage2_depth_terms"]
+        for name in calls:
             for _ in range(3):
                 calls[name]()
             ti.sync()
