@@ -168,6 +168,10 @@ def _kernels(dt) -> SimpleNamespace:
     # least SSIM_RADIUS pixels inside run unchecked (branch-free) sums, adding the taps in the same order.
     # Its scratch records are flat arrays, indexed once per tap (a multi-dimensional ndarray index costs
     # integer arithmetic per access on the CPU backend): 0.64x the kernel's time at 256x192 (BENCHMARKS).
+    # The taps are a loop over the window's weights (a device array), not unrolled: with 11 taps unrolled in each
+    # pass and variant the kernel took 27 s to compile from an empty offline cache and 1.8 s to load from a full
+    # one (the Python front end unrolls before the cache is consulted); the channels stay unrolled (a channel
+    # loop made it 1.1-1.25x slower). BENCHMARKS, "D-SSIM compiles in 2 s".
     taps = 2 * SSIM_RADIUS + 1
 
     @ti.func
@@ -176,14 +180,15 @@ def _kernels(dt) -> SimpleNamespace:
         return ti.min(SSIM_RADIUS, n), ti.max(n - SSIM_RADIUS, SSIM_RADIUS)
 
     @ti.func
-    def row_moments(pred: ti.template(), target: ti.template(), v, u, k, w, checked: ti.template()):
+    def row_moments(pred: ti.template(), target: ti.template(), window: ti.template(), v, u, k, w,
+                    checked: ti.template()):
         """Horizontal window sums of (x, y, x^2, y^2, xy) at (v, u) of channel k."""
         m = ti.Vector.zero(dt, 5)
-        for t in ti.static(range(taps)):
+        for t in range(taps):
             col = u + t - SSIM_RADIUS
             if not ti.static(checked) or 0 <= col < w:
                 x, y = pred[v, col, k], target[v, col, k]
-                m += dt(WINDOW[t]) * ti.Vector([x, y, x * x, y * y, x * y], dt=dt)
+                m += window[t] * ti.Vector([x, y, x * x, y * y, x * y], dt=dt)
         return m
 
     @ti.func
@@ -192,20 +197,22 @@ def _kernels(dt) -> SimpleNamespace:
         return ((v * w + u) * c + k) * q
 
     @ti.func
-    def window_sum(src: ti.template(), base, stride, at, n, q: ti.template(), checked: ti.template()):
+    def window_sum(src: ti.template(), window: ti.template(), base, stride, at, n, q: ti.template(),
+                   checked: ti.template()):
         """Window sums of the q values at flat index ``base`` in ``src``, the window along an axis of n
         indices centred on index ``at``, its neighbours ``stride`` apart (a row: c q; a column: w c q)."""
         acc = ti.Vector.zero(dt, q)
-        for i in ti.static(range(taps)):
+        for i in range(taps):
             x = at + i - SSIM_RADIUS
             if not ti.static(checked) or 0 <= x < n:
                 tap = base + (i - SSIM_RADIUS) * stride
                 for j in ti.static(range(q)):
-                    acc[j] += dt(WINDOW[i]) * src[tap + j]
+                    acc[j] += window[i] * src[tap + j]
         return acc
 
     @ti.func
-    def moments_row(pred: ti.template(), target: ti.template(), moments: ti.template(), v, u0, u1, c: ti.template()):
+    def moments_row(pred: ti.template(), target: ti.template(), window: ti.template(), moments: ti.template(), v,
+                    u0, u1, c: ti.template()):
         """Pass 1 on row v's pixels [u0, u1): horizontal window sums into ``moments``."""
         w = pred.shape[1]
         first, last = interior(w)
@@ -213,15 +220,15 @@ def _kernels(dt) -> SimpleNamespace:
             for k in ti.static(range(c)):
                 m = ti.Vector.zero(dt, 5)
                 if first <= u < last:
-                    m = row_moments(pred, target, v, u, k, w, False)
+                    m = row_moments(pred, target, window, v, u, k, w, False)
                 else:
-                    m = row_moments(pred, target, v, u, k, w, True)
+                    m = row_moments(pred, target, window, v, u, k, w, True)
                 for j in ti.static(range(5)):
                     moments[record(v, u, k, w, c, 5) + j] = m[j]
 
     @ti.func
-    def ssim_row(moments: ti.template(), mask: ti.template(), partial: ti.template(), v, u0, u1, weight, total,
-                 c: ti.template(), checked: ti.template()):
+    def ssim_row(moments: ti.template(), window: ti.template(), mask: ti.template(), partial: ti.template(), v, u0,
+                 u1, weight, total, c: ti.template(), checked: ti.template()):
         """Pass 2 on row v's pixels [u0, u1): vertical window sums, SSIM and dSSIM/d(mu1, E[x^2], E[xy]);
         returns their masked SSIM sum."""
         h, w = mask.shape[0], mask.shape[1]
@@ -230,7 +237,7 @@ def _kernels(dt) -> SimpleNamespace:
         for u in range(u0, u1):
             scale = norm * mask[v, u]
             for k in ti.static(range(c)):
-                m = window_sum(moments, record(v, u, k, w, c, 5), w * c * 5, v, h, 5, checked)
+                m = window_sum(moments, window, record(v, u, k, w, c, 5), w * c * 5, v, h, 5, checked)
                 mu1, mu2 = m[0], m[1]
                 s11, s22, s12 = m[2] - mu1 * mu1, m[3] - mu2 * mu2, m[4] - mu1 * mu2
                 a1, a2 = 2 * mu1 * mu2 + dt(SSIM_C1), 2 * s12 + dt(SSIM_C2)
@@ -245,7 +252,8 @@ def _kernels(dt) -> SimpleNamespace:
         return acc
 
     @ti.func
-    def blurred_partial_row(partial: ti.template(), blurred_partial: ti.template(), v, u0, u1, w, c: ti.template()):
+    def blurred_partial_row(partial: ti.template(), window: ti.template(), blurred_partial: ti.template(), v, u0, u1,
+                            w, c: ti.template()):
         """Pass 3 on row v's pixels [u0, u1): the partials' horizontal window sums."""
         first, last = interior(w)
         for u in range(u0, u1):
@@ -253,25 +261,25 @@ def _kernels(dt) -> SimpleNamespace:
                 m = ti.Vector.zero(dt, 3)
                 base = record(v, u, k, w, c, 3)
                 if first <= u < last:
-                    m = window_sum(partial, base, c * 3, u, w, 3, False)
+                    m = window_sum(partial, window, base, c * 3, u, w, 3, False)
                 else:
-                    m = window_sum(partial, base, c * 3, u, w, 3, True)
+                    m = window_sum(partial, window, base, c * 3, u, w, 3, True)
                 for j in ti.static(range(3)):
                     blurred_partial[base + j] = m[j]
 
     @ti.func
-    def gradient_row(blurred_partial: ti.template(), pred: ti.template(), target: ti.template(), grad: ti.template(),
-                     v, u0, u1, c: ti.template(), checked: ti.template()):
+    def gradient_row(blurred_partial: ti.template(), window: ti.template(), pred: ti.template(), target: ti.template(),
+                     grad: ti.template(), v, u0, u1, c: ti.template(), checked: ti.template()):
         """Pass 4 on row v's pixels [u0, u1): the partials' vertical window sums, chained into dL/dpred."""
         h, w = pred.shape[0], pred.shape[1]
         for u in range(u0, u1):
             for k in ti.static(range(c)):
-                m = window_sum(blurred_partial, record(v, u, k, w, c, 3), w * c * 3, v, h, 3, checked)
+                m = window_sum(blurred_partial, window, record(v, u, k, w, c, 3), w * c * 3, v, h, 3, checked)
                 grad[v, u, k] = grad[v, u, k] + m[0] + 2 * pred[v, u, k] * m[1] + target[v, u, k] * m[2]
 
     @ti.kernel
     def dssim(
-        pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt,
+        pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt, window: fnd(1),
         moments: fnd(1), partial: fnd(1), blurred_partial: fnd(1), parts: fnd(2), rows: fnd(2), c: ti.template(),
     ) -> dt:
         h, w = pred.shape[0], pred.shape[1]
@@ -280,25 +288,27 @@ def _kernels(dt) -> SimpleNamespace:
         for i in range(n_spans * spread):  # horizontal window sums of x, y, x^2, y^2, xy
             if i % spread == 0:
                 v, u0, u1 = row_spans.span_at(i // spread, w, span)
-                moments_row(pred, target, moments, v, u0, u1, c)
+                moments_row(pred, target, window, moments, v, u0, u1, c)
         for i in range(n_spans * spread):  # vertical window sums, SSIM and its partials
             if i % spread == 0:
                 v, u0, u1 = row_spans.span_at(i // spread, w, span)
                 if first <= v < last:
-                    parts[i // spread, 0] = ssim_row(moments, mask, partial, v, u0, u1, weight, total, c, False)
+                    parts[i // spread, 0] = ssim_row(moments, window, mask, partial, v, u0, u1, weight, total, c,
+                                                             False)
                 else:
-                    parts[i // spread, 0] = ssim_row(moments, mask, partial, v, u0, u1, weight, total, c, True)
+                    parts[i // spread, 0] = ssim_row(moments, window, mask, partial, v, u0, u1, weight, total, c,
+                                                             True)
         for i in range(n_spans * spread):  # the window is symmetric: the backward blurs the partials again
             if i % spread == 0:
                 v, u0, u1 = row_spans.span_at(i // spread, w, span)
-                blurred_partial_row(partial, blurred_partial, v, u0, u1, w, c)
+                blurred_partial_row(partial, window, blurred_partial, v, u0, u1, w, c)
         for i in range(n_spans * spread):
             if i % spread == 0:
                 v, u0, u1 = row_spans.span_at(i // spread, w, span)
                 if first <= v < last:
-                    gradient_row(blurred_partial, pred, target, grad, v, u0, u1, c, False)
+                    gradient_row(blurred_partial, window, pred, target, grad, v, u0, u1, c, False)
                 else:
-                    gradient_row(blurred_partial, pred, target, grad, v, u0, u1, c, True)
+                    gradient_row(blurred_partial, window, pred, target, grad, v, u0, u1, c, True)
         return 1.0 - totals(parts, rows, h, w, 1)[0] / (total * c)
 
     @ti.kernel
@@ -333,6 +343,14 @@ def _partials(image: ti.Ndarray, cols: int) -> tuple[ti.Ndarray, ti.Ndarray]:
     h, w = image.shape[0], image.shape[1]
     return (_buffer("span_partials", image.dtype, (h * row_spans.spans_per_row(w), cols)),
             _buffer("row_sums", image.dtype, (h, cols)))
+
+
+@functools.cache
+def _window_on_device(dt) -> ti.Ndarray:
+    """The D-SSIM window's taps (:data:`WINDOW`) as a device array, read by the kernel's tap loops."""
+    window = ti.ndarray(dt, (len(WINDOW),))
+    window.from_numpy(np.array(WINDOW, np.float32 if dt == ti.f32 else np.float64))
+    return window
 
 
 def _checked(pred, target, grad):
@@ -422,7 +440,8 @@ def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float 
     mask = _weights_for(pred, mask)
     return float(
         _kernels(dt).dssim(
-            pred, target, grad, weight, mask.weights, mask.total, _buffer("moments", dt, (h * w * c * 5,)),
+            pred, target, grad, weight, mask.weights, mask.total, _window_on_device(dt),
+            _buffer("moments", dt, (h * w * c * 5,)),
             _buffer("partial", dt, (h * w * c * 3,)), _buffer("blurred_partial", dt, (h * w * c * 3,)),
             *_partials(pred, 1), c,
         )
