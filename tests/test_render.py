@@ -126,9 +126,9 @@ def gradient_error(analytic: np.ndarray, numeric_at) -> float:
     return float(err.max())
 
 
-def check_forward_matches_reference(precision: str, seed: int = 3) -> float:
+def check_forward_matches_reference(precision: str, seed: int = 3, n_sh: int = 9) -> float:
     """Max abs difference of rgb, depth, alpha against the NumPy reference."""
-    scene = make_scene(seed, n=80, n_sh=9, dense=120)
+    scene = make_scene(seed, n=80, n_sh=n_sh, dense=120)
     got = rasterize(*scene, K, POSE, WIDTH, HEIGHT, background=BACKGROUND, precision=precision)
     want = reference_renderer.render(*scene, K, POSE, WIDTH, HEIGHT, background=BACKGROUND)
     assert want[2].max() > 0.999, "scene should drive some pixels close to full opacity"
@@ -180,6 +180,11 @@ def test_forward_matches_reference_f64() -> None:
     assert check_forward_matches_reference("f64") < 3e-7
 
 
+def test_forward_sh_degree_0_matches_reference() -> None:
+    """Degree 0 compiles without the higher SH bands (``view_dependent`` off): the DC colour alone."""
+    assert check_forward_matches_reference("f64", seed=4, n_sh=1) < 3e-7
+
+
 def test_gradients_full_model_sh3_dense_tile() -> None:
     errors = check_gradients(isotropic=False, n_sh=16, seed=11, dense=30, sample=300)
     assert max(errors.values()) < 1e-5, errors
@@ -187,6 +192,12 @@ def test_gradients_full_model_sh3_dense_tile() -> None:
 
 def test_gradients_sh_degree_1() -> None:
     errors = check_gradients(isotropic=False, n_sh=4, seed=12, dense=0)
+    assert max(errors.values()) < 1e-5, errors
+
+
+def test_gradients_sh_degree_0() -> None:
+    """Stage 3's fast-preset path: anisotropic Gaussians with the DC colour only."""
+    errors = check_gradients(isotropic=False, n_sh=1, seed=14, dense=20)
     assert max(errors.values()) < 1e-5, errors
 
 

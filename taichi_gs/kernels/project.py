@@ -195,12 +195,16 @@ def make(dt) -> SimpleNamespace:
         )
 
     @ti.func
-    def view_color(g, sh: Array, n_sh, basis):
-        """SH colour + 0.5 before the clamp at 0 (3 channels), given the basis values."""
-        col = vec3(0.5)
-        for k in ti.static(range(16)):
-            if k < n_sh:
-                col += basis[k] * vec3(sh[g, k, 0], sh[g, k, 1], sh[g, k, 2])
+    def view_color(g, sh: Array, n_sh, direction, view_dependent: ti.template()):
+        """SH colour + 0.5 before the clamp at 0 (3 channels) seen along unit ``direction``. Without
+        ``view_dependent`` (static: every Gaussian has one coefficient, SH degree 0) only the DC term is read,
+        and the higher bands are not compiled at all (they are most of the rasterizer's compile time)."""
+        col = vec3(0.5) + dt(SH_C0) * vec3(sh[g, 0, 0], sh[g, 0, 1], sh[g, 0, 2])
+        if ti.static(view_dependent):
+            basis = sh_basis(direction)
+            for k in ti.static(range(1, 16)):
+                if k < n_sh:
+                    col += basis[k] * vec3(sh[g, k, 0], sh[g, k, 1], sh[g, k, 2])
         return col
 
     @ti.func
@@ -219,6 +223,7 @@ def make(dt) -> SimpleNamespace:
         proj: Array,  # output (N, P_WIDTH): screen record, written for visible Gaussians only
         rect: Array,  # output (N, 4) i32: pixel box u0, v0, u1, v1 (u0 > u1 when culled)
         isotropic: ti.template(),
+        view_dependent: ti.template(),  # n_sh > 1 (see view_color)
     ):
         """Project Gaussian g; write its screen record proj[g] and clipped pixel box rect[g]
         (rect[g, 0] > rect[g, 2] marks a culled Gaussian)."""
@@ -255,7 +260,7 @@ def make(dt) -> SimpleNamespace:
                     rect[g, 1] = ti.cast(v0, ti.i32)
                     rect[g, 2] = ti.cast(u1, ti.i32)
                     rect[g, 3] = ti.cast(v1, ti.i32)
-                    col = ti.max(view_color(g, sh, n_sh, sh_basis(d / d.norm())), 0.0)
+                    col = ti.max(view_color(g, sh, n_sh, d / d.norm(), view_dependent), 0.0)
                     proj[g, P_MEAN_X] = mx
                     proj[g, P_MEAN_Y] = my
                     proj[g, P_CONIC_A] = cc / det
@@ -282,6 +287,7 @@ def make(dt) -> SimpleNamespace:
         height,
         gs,  # N_GRADS-vector: dL/d(screen record)
         isotropic: ti.template(),
+        view_dependent: ti.template(),
         d_means: Array,  # output (N, 3), added to
         d_quats: Array,  # output (N, 4), added to (untouched when isotropic)
         d_log_scales: Array,  # output (N, 3), added to (untouched when isotropic)
@@ -306,18 +312,20 @@ def make(dt) -> SimpleNamespace:
         # colour: clamp mask, SH coefficients and the view direction
         dist = d.norm()
         direction = d / dist
-        basis = sh_basis(direction)
-        raw = view_color(g, sh, n_sh, basis)
+        raw = view_color(g, sh, n_sh, direction, view_dependent)
         g_col = vec3(0.0)
         for c in ti.static(range(3)):
             if raw[c] > 0.0:
                 g_col[c] = gs[P_COLOR + c]
-        for k in ti.static(range(16)):
-            if k < n_sh:
-                for c in ti.static(range(3)):
-                    d_sh[g, k, c] = d_sh[g, k, c] + basis[k] * g_col[c]
+        for c in ti.static(range(3)):
+            d_sh[g, 0, c] = d_sh[g, 0, c] + dt(SH_C0) * g_col[c]
         g_d = vec3(0.0)
-        if n_sh > 1:  # degree 0 does not depend on the view direction
+        if ti.static(view_dependent):  # degree 0 does not depend on the view direction
+            basis = sh_basis(direction)
+            for k in ti.static(range(1, 16)):
+                if k < n_sh:
+                    for c in ti.static(range(3)):
+                        d_sh[g, k, c] = d_sh[g, k, c] + basis[k] * g_col[c]
             jac_sh = sh_basis_jacobian(direction)
             g_dir = vec3(0.0)
             for k in ti.static(range(1, 16)):
@@ -417,6 +425,7 @@ def make(dt) -> SimpleNamespace:
         width,
         height,
         isotropic: ti.template(),
+        view_dependent: ti.template(),
         d_means: Array,  # output, added to (as project_one_vjp)
         d_quats: Array,
         d_log_scales: Array,
@@ -432,7 +441,7 @@ def make(dt) -> SimpleNamespace:
                 for c in ti.static(range(N_GRADS)):
                     gs[c] += slot_grad[s, c]
             pose = project_one_vjp(g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, gs,
-                                   isotropic, d_means, d_quats, d_log_scales, d_logits, d_sh)
+                                   isotropic, view_dependent, d_means, d_quats, d_log_scales, d_logits, d_sh)
         return pose
 
     return SimpleNamespace(

@@ -76,10 +76,12 @@ def make(dt) -> SimpleNamespace:
         depth_keys: ind(1),  # output (N,) f32 bits of the depth, INF_BITS when culled
         ids: ind(1),  # output (N,) 0 .. N-1
         isotropic: ti.template(),
+        view_dependent: ti.template(),  # more than one SH coefficient
     ):
         for g in range(n):
             proj_f.project_one(
-                g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, proj, rect, isotropic
+                g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, proj, rect, isotropic,
+                view_dependent,
             )
             key = INF_BITS
             if rect[g, 0] <= rect[g, 2]:
@@ -353,11 +355,12 @@ def make(dt) -> SimpleNamespace:
         d_sh: fnd(3),  # output (N, >= n_sh, 3), added to
         pose_part: fnd(2),  # output (N, 6): row i = the pose gradient of Gaussian order[i]
         isotropic: ti.template(),
+        view_dependent: ti.template(),
     ):
         for i in range(n):
             pose = proj_f.slots_vjp(
                 order[i], offsets[i], offsets[i + 1], slot_grad, means, quats, log_scales, logits, sh, n_sh, cam,
-                intr, width, height, isotropic, d_means, d_quats, d_log_scales, d_logits, d_sh,
+                intr, width, height, isotropic, view_dependent, d_means, d_quats, d_log_scales, d_logits, d_sh,
             )
             for c in ti.static(range(6)):
                 pose_part[i, c] = pose[c]
@@ -417,7 +420,7 @@ class GpuPipeline:
         keys, ids = s.get("depth_keys", n), s.get("ids", n)
         self.k.project_keys(
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], n, gaussians.n_sh,
-            cam, intr, width, height, view.proj, view.rect, keys, ids, gaussians.isotropic,
+            cam, intr, width, height, view.proj, view.rect, keys, ids, gaussians.isotropic, gaussians.view_dependent,
         )
         _, view.depth_order = scan.radix_sort(keys, ids, n, DEPTH_KEY_BITS, s, "depth_sort")
         view.depth_offsets = s.get("offsets", n + 1)
@@ -460,6 +463,7 @@ class GpuPipeline:
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
             view.depth_order, view.depth_offsets, slot_grad,
             g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["colors"], rows, gaussians.isotropic,
+            gaussians.view_dependent,
         )
         if n == 0:
             return np.zeros(6)

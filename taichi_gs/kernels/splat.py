@@ -85,10 +85,12 @@ def _kernels(dt) -> SimpleNamespace:
         offsets: ind(1),  # out (N + 1,): exclusive prefix sum of tiles touched; offsets[N] = S
         chunk_base: ind(1),  # scratch (N / SCAN_CHUNK + 2,)
         isotropic: ti.template(),
+        view_dependent: ti.template(),  # M > 1
     ):
         for g in range(n):
             proj_f.project_one(
-                g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, proj, rect, isotropic
+                g, means, quats, log_scales, logits, sh, n_sh, cam, intr, width, height, proj, rect, isotropic,
+                view_dependent,
             )
         # exclusive prefix sum of the tile counts, in chunks: chunk sums, a short serial scan over
         # chunks, then each chunk's own scan (parallel on CPU and GPU alike)
@@ -221,6 +223,7 @@ def _kernels(dt) -> SimpleNamespace:
         pose_chunks: fnd(2),  # scratch (N / POSE_CHUNK + 1, 6)
         pose_grad: fnd(1),  # out (6,): dL/d left perturbation of the camera, [translation, rotation]
         isotropic: ti.template(),
+        view_dependent: ti.template(),  # M > 1
         with_colour: ti.template(),  # as the forward was rendered
     ):
         for i in range(n_tiles * spread):
@@ -232,7 +235,7 @@ def _kernels(dt) -> SimpleNamespace:
         for g in range(n):
             pose = proj_f.slots_vjp(
                 g, offsets[g], offsets[g + 1], slot_grad, means, quats, log_scales, logits, sh, n_sh, cam, intr,
-                width, height, isotropic, d_means, d_quats, d_log_scales, d_logits, d_sh,
+                width, height, isotropic, view_dependent, d_means, d_quats, d_log_scales, d_logits, d_sh,
             )
             for c in ti.static(range(6)):
                 pose_part[g, c] = pose[c]
@@ -317,6 +320,12 @@ class DeviceGaussians:
         model.upload(means=means, quats=None if isotropic else quats, log_scales=log_scales,
                      opacity_logits=opacity_logits, colors=colors)
         return model
+
+    @property
+    def view_dependent(self) -> bool:
+        """True when colours depend on the view (SH degree above 0): the rasterizer kernels take it as a
+        compile-time switch, so degree-0 scenes compile without the higher SH bands."""
+        return self.n_sh > 1
 
     def upload(self, **arrays: np.ndarray | None) -> None:
         """Overwrite the named parameters from NumPy (None entries are skipped)."""
@@ -482,6 +491,7 @@ class Rasterizer:
         self.k.project_and_count(
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], n, gaussians.n_sh,
             cam, intr, width, height, v.proj, v.rect, v.offsets, v.chunk_base, gaussians.isotropic,
+            gaussians.view_dependent,
         )
         n_slots = int(v.offsets[n])
         clock("project")
@@ -540,7 +550,8 @@ class Rasterizer:
             view.transmittance, view.last, d_rgb, d_depth, d_alpha,
             self._state(B_WIDTH, width, height), s["slot_grad"],
             g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["colors"],
-            s["pose_part"], s["pose_chunks"], s["pose_grad"], gaussians.isotropic, bool(view.with_colour),
+            s["pose_part"], s["pose_chunks"], s["pose_grad"], gaussians.isotropic, gaussians.view_dependent,
+            bool(view.with_colour),
         )
         return s["pose_grad"].to_numpy().astype(np.float64)
 
