@@ -3,6 +3,8 @@ and stage 3's schedule helpers."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import taichi as ti
@@ -74,7 +76,13 @@ def test_schedule_scales_with_training_views():
     fast = PRESETS["fast"]
     assert fast.iterations_per_view == 80 and PRESETS["paper"].iterations_per_view == 0  # the method: fixed count
     assert fast.iterations == 1200
-    assert scaled_schedule(fast, 10) is fast  # 800 < 1200: unchanged
+    assert scaled_schedule(fast, 15) is fast  # 80 x 15 = 1200: unchanged
+    short = scaled_schedule(fast, 10)  # 800 views' steps, below the floor: min_iterations, windows scaled down
+    assert fast.min_iterations == 880 and short.iterations == 880
+    assert (short.densify_from, short.densify_until, short.densify_every, short.exposure_from) == (73, 330, 73, 88)
+    assert scaled_schedule(fast, 13).iterations == 1040  # 80 per view between the floor and 1200
+    unfloored = dataclasses.replace(fast, min_iterations=0)
+    assert scaled_schedule(unfloored, 10) is unfloored  # without min_iterations the floor is iterations
     long = scaled_schedule(fast, 30)
     assert long.iterations == 2400 and long.densify_from == 2 * fast.densify_from
     assert long.densify_until == 2 * fast.densify_until and long.exposure_from == 2 * fast.exposure_from

@@ -97,6 +97,10 @@ class DeblurConfig:
     # [ours] schedule: iterations = max(iterations, iterations_per_view x training views), with the
     # densification and exposure windows stretched alike (0 = fixed iterations)
     iterations_per_view: int = 0
+    # [ours] with iterations_per_view: the floor of that schedule instead of ``iterations`` (0 = iterations), so a
+    # short sequence runs max(min_iterations, iterations_per_view x training views) with the windows of
+    # ``iterations`` scaled down alike; sequences that reach ``iterations`` are unaffected
+    min_iterations: int = 0
     epoch_sampling: bool = False  # [ours] visit training views in shuffled epochs instead of at random
     # [ours] at each densification, in fill_frames random training views, add a Gaussian every
     # fill_stride pixels where the render's alpha is below 0.5 (no Gaussians: depth holes of the
@@ -164,6 +168,10 @@ PRESETS = {
                          # view; 40 per view gave +1.8 dB held-out on a 60-frame sequence and +0.55 dB on a real
                          # capture, BENCHMARKS "Steps per view"); affordable with warped views (below)
                          iterations_per_view=80,
+                         # [ours] ... and 80 per view below 15 views too, at least 880 (11 views): 0.68-0.83x the
+                         # stage-3 time of 1200 on three 16-frame clips at -0.02 to -0.23 dB held-out (BENCHMARKS,
+                         # "Short sequences at 80 steps per view")
+                         min_iterations=880,
                          # [ours] held-out fits by Rprop: 20 steps score like Adam's 30 on the sample and on a real
                          # capture (BENCHMARKS, "Held-out fits by Rprop"); the Adam fit took 30
                          test_pose_iterations=20, test_fit="rprop",
@@ -215,16 +223,19 @@ def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int
 
 
 def scaled_schedule(config: DeblurConfig, n_train: int) -> DeblurConfig:
-    """``config`` with ``iterations`` raised to ``iterations_per_view`` x ``n_train`` when that is more,
-    and the iteration counts of its densification and exposure windows scaled by the same factor."""
-    wanted = config.iterations_per_view * n_train
-    if wanted <= config.iterations:
+    """``config`` with ``iterations`` raised to ``iterations_per_view`` x ``n_train`` when that is more (or,
+    with ``min_iterations``, set to the larger of that and ``min_iterations``), and the iteration counts of its
+    densification and exposure windows scaled by the same factor."""
+    if config.iterations_per_view == 0:
+        return config
+    wanted = max(config.iterations_per_view * n_train, config.min_iterations or config.iterations)
+    if wanted == config.iterations:
         return config
     factor = wanted / config.iterations
     return dataclasses.replace(
         config, iterations=wanted, densify_from=round(config.densify_from * factor),
         densify_until=round(config.densify_until * factor), densify_every=max(1, round(config.densify_every * factor)),
-        exposure_from=round(config.exposure_from * factor), iterations_per_view=0)
+        exposure_from=round(config.exposure_from * factor), iterations_per_view=0, min_iterations=0)
 
 
 def training_frame(train: list[int], iteration: int, rng: np.random.Generator, seed: int, epochs: bool) -> int:
