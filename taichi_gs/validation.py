@@ -93,7 +93,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "test_pose_iterations": OPTIONAL_COUNT, "resolution_scale": COUNT, "checkpoint_every": COUNT,
         "grid_frames": OPTIONAL_COUNT, "holdout": _one_of("every", "sharpest"), "lambda_colour_affine": NON_NEGATIVE,
         "test_fit": _one_of("adam", "rprop"), "lr_test_pose": POSITIVE,
-        "iterations_per_view": OPTIONAL_COUNT, "min_iterations": OPTIONAL_COUNT, "fill_frames": COUNT, "fill_stride": COUNT,
+        "iterations_per_view": OPTIONAL_COUNT, "fill_frames": COUNT, "fill_stride": COUNT,
         "coarse_scale": COUNT, "coarse_fraction": FRACTION, "k_min": COUNT,
         "early_views_fraction": FRACTION, "early_step_scale": _at_least(1.0),
         "densify_by": _one_of("gradient", "error", "both"), "error_densify_share": FRACTION,

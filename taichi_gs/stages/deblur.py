@@ -97,10 +97,6 @@ class DeblurConfig:
     # [ours] schedule: iterations = max(iterations, iterations_per_view x training views), with the
     # densification and exposure windows stretched alike (0 = fixed iterations)
     iterations_per_view: int = 0
-    # [ours] with iterations_per_view: the floor of that schedule instead of ``iterations`` (0 = iterations), so a
-    # short sequence runs max(min_iterations, iterations_per_view x training views) with the windows of
-    # ``iterations`` scaled down alike; sequences that reach ``iterations`` are unaffected
-    min_iterations: int = 0
     epoch_sampling: bool = False  # [ours] visit training views in shuffled epochs instead of at random
     # [ours] at each densification, in fill_frames random training views, add a Gaussian every
     # fill_stride pixels where the render's alpha is below 0.5 (no Gaussians: depth holes of the
@@ -155,23 +151,24 @@ PRESETS = {
     # sample's learned exposures reach 12.2 px, a TUM slice's 13.8 px: with k = 7, 12 px, both warned;
     # adaptive_k spends the eighth view only where an exposure needs it; BENCHMARKS, "k up to 8");
     # paper keeps the method's 1 px rule of thumb with k = 15.
-    "fast": DeblurConfig(k=8, max_step_px=2.0, iterations=1200, sh_degree=0, lr_colors=0.02, densify_from=100,
-                         densify_until=450, densify_every=100, max_gaussians=100_000, reset_opacity_every=0,
-                         lr_exposure=2e-3, exposure_from=120, checkpoint_every=100,
+    # The schedule below is the shortest (840 iterations: 10 training views at 80 per view); longer sequences
+    # scale it (scaled_schedule), and from 15 views on that gives exactly the schedule of the 1200-iteration base
+    # it replaced (densification from 1/12 to 3/8 of the run every 1/12, exposures from 1/10).
+    "fast": DeblurConfig(k=8, max_step_px=2.0, iterations=840, sh_degree=0, lr_colors=0.02, densify_from=70,
+                         densify_until=315, densify_every=70, max_gaussians=100_000, reset_opacity_every=0,
+                         lr_exposure=2e-3, exposure_from=84, checkpoint_every=100,
                          # [ours] real captures: +1.2 dB on held-out sharpest frames of a 7-Scenes slice,
                          # +0.06 dB on synthetic (BENCHMARKS, "Stage 3 on real captures")
                          colour_affine=True, fill_uncovered=True, epoch_sampling=True,
                          # [ours] k per exposure (3..k views at 2 px steps): 0.75x the stage-3 CPU time on the
                          # sample at +0.08 dB held-out PSNR with k = 7 (BENCHMARKS, "Quality per minute")
                          adaptive_k=True,
-                         # [ours] at least 80 steps per training view (1200 iterations up to 15 views, then 80 per
-                         # view; 40 per view gave +1.8 dB held-out on a 60-frame sequence and +0.55 dB on a real
-                         # capture, BENCHMARKS "Steps per view"); affordable with warped views (below)
+                         # [ours] 80 steps per training view (40 per view gave +1.8 dB held-out on a 60-frame
+                         # sequence and +0.55 dB on a real capture, BENCHMARKS "Steps per view"); affordable with
+                         # warped views (below). Short sequences too: the base used to be 1200 iterations up to 15
+                         # views; 880 on three 16-frame clips (11 views) took 0.68-0.83x the stage-3 time at -0.02
+                         # to -0.23 dB held-out (BENCHMARKS, "Short sequences at 80 steps per view")
                          iterations_per_view=80,
-                         # [ours] ... and 80 per view below 15 views too, at least 880 (11 views): 0.68-0.83x the
-                         # stage-3 time of 1200 on three 16-frame clips at -0.02 to -0.23 dB held-out (BENCHMARKS,
-                         # "Short sequences at 80 steps per view")
-                         min_iterations=880,
                          # [ours] held-out fits by Rprop: 20 steps score like Adam's 30 on the sample and on a real
                          # capture (BENCHMARKS, "Held-out fits by Rprop"); the Adam fit took 30
                          test_pose_iterations=20, test_fit="rprop",
@@ -223,19 +220,16 @@ def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int
 
 
 def scaled_schedule(config: DeblurConfig, n_train: int) -> DeblurConfig:
-    """``config`` with ``iterations`` raised to ``iterations_per_view`` x ``n_train`` when that is more (or,
-    with ``min_iterations``, set to the larger of that and ``min_iterations``), and the iteration counts of its
-    densification and exposure windows scaled by the same factor."""
-    if config.iterations_per_view == 0:
-        return config
-    wanted = max(config.iterations_per_view * n_train, config.min_iterations or config.iterations)
-    if wanted == config.iterations:
+    """``config`` with ``iterations`` raised to ``iterations_per_view`` x ``n_train`` when that is more,
+    and the iteration counts of its densification and exposure windows scaled by the same factor."""
+    wanted = config.iterations_per_view * n_train
+    if wanted <= config.iterations:
         return config
     factor = wanted / config.iterations
     return dataclasses.replace(
         config, iterations=wanted, densify_from=round(config.densify_from * factor),
         densify_until=round(config.densify_until * factor), densify_every=max(1, round(config.densify_every * factor)),
-        exposure_from=round(config.exposure_from * factor), iterations_per_view=0, min_iterations=0)
+        exposure_from=round(config.exposure_from * factor), iterations_per_view=0)
 
 
 def training_frame(train: list[int], iteration: int, rng: np.random.Generator, seed: int, epochs: bool) -> int:
