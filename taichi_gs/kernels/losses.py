@@ -28,6 +28,7 @@ import numpy as np
 import taichi as ti
 
 from . import row_spans, runtime
+from .splat import np_dtype
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -171,7 +172,7 @@ def _kernels(dt) -> SimpleNamespace:
     # The taps are a loop over the window's weights (a device array), not unrolled: with 11 taps unrolled in each
     # pass and variant the kernel took 27 s to compile from an empty offline cache and 1.8 s to load from a full
     # one (the Python front end unrolls before the cache is consulted); the channels stay unrolled (a channel
-    # loop made it 1.1-1.25x slower). BENCHMARKS, "D-SSIM compiles in 2 s".
+    # loop made it 1.1-1.25x slower). BENCHMARKS, "Compile time: D-SSIM's window taps as a loop".
     taps = 2 * SSIM_RADIUS + 1
 
     @ti.func
@@ -293,11 +294,11 @@ def _kernels(dt) -> SimpleNamespace:
             if i % spread == 0:
                 v, u0, u1 = row_spans.span_at(i // spread, w, span)
                 if first <= v < last:
-                    parts[i // spread, 0] = ssim_row(moments, window, mask, partial, v, u0, u1, weight, total, c,
-                                                             False)
+                    parts[i // spread, 0] = ssim_row(moments, window, mask, partial, v, u0, u1, weight, total,
+                                                     c, False)
                 else:
-                    parts[i // spread, 0] = ssim_row(moments, window, mask, partial, v, u0, u1, weight, total, c,
-                                                             True)
+                    parts[i // spread, 0] = ssim_row(moments, window, mask, partial, v, u0, u1, weight, total,
+                                                     c, True)
         for i in range(n_spans * spread):  # the window is symmetric: the backward blurs the partials again
             if i % spread == 0:
                 v, u0, u1 = row_spans.span_at(i // spread, w, span)
@@ -349,7 +350,7 @@ def _partials(image: ti.Ndarray, cols: int) -> tuple[ti.Ndarray, ti.Ndarray]:
 def _window_on_device(dt) -> ti.Ndarray:
     """The D-SSIM window's taps (:data:`WINDOW`) as a device array, read by the kernel's tap loops."""
     window = ti.ndarray(dt, (len(WINDOW),))
-    window.from_numpy(np.array(WINDOW, np.float32 if dt == ti.f32 else np.float64))
+    window.from_numpy(np.array(WINDOW, np_dtype(dt)))
     return window
 
 

@@ -195,13 +195,21 @@ def make(dt) -> SimpleNamespace:
         )
 
     @ti.func
-    def view_color(g, sh: Array, n_sh, direction, view_dependent: ti.template()):
-        """SH colour + 0.5 before the clamp at 0 (3 channels) seen along unit ``direction``. Without
-        ``view_dependent`` (static: every Gaussian has one coefficient, SH degree 0) only the DC term is read,
-        and the higher bands are not compiled at all (they are most of the rasterizer's compile time)."""
-        col = vec3(0.5) + dt(SH_C0) * vec3(sh[g, 0, 0], sh[g, 0, 1], sh[g, 0, 2])
+    def view_basis(direction, view_dependent: ti.template()):
+        """:func:`sh_basis` of unit ``direction`` when ``view_dependent`` (static), else zeros: with one SH
+        coefficient per Gaussian (degree 0) only the constant DC term is used, and the higher bands are not
+        compiled at all (they are most of the rasterizer's compile time)."""
+        basis = ti.Vector.zero(dt, 16)
         if ti.static(view_dependent):
             basis = sh_basis(direction)
+        return basis
+
+    @ti.func
+    def view_color(g, sh: Array, n_sh, basis, view_dependent: ti.template()):
+        """SH colour + 0.5 before the clamp at 0 (3 channels), given :func:`view_basis`; without
+        ``view_dependent`` (static) only the DC term is read."""
+        col = vec3(0.5) + dt(SH_C0) * vec3(sh[g, 0, 0], sh[g, 0, 1], sh[g, 0, 2])
+        if ti.static(view_dependent):
             for k in ti.static(range(1, 16)):
                 if k < n_sh:
                     col += basis[k] * vec3(sh[g, k, 0], sh[g, k, 1], sh[g, k, 2])
@@ -260,7 +268,7 @@ def make(dt) -> SimpleNamespace:
                     rect[g, 1] = ti.cast(v0, ti.i32)
                     rect[g, 2] = ti.cast(u1, ti.i32)
                     rect[g, 3] = ti.cast(v1, ti.i32)
-                    col = ti.max(view_color(g, sh, n_sh, d / d.norm(), view_dependent), 0.0)
+                    col = ti.max(view_color(g, sh, n_sh, view_basis(d / d.norm(), view_dependent), view_dependent), 0.0)
                     proj[g, P_MEAN_X] = mx
                     proj[g, P_MEAN_Y] = my
                     proj[g, P_CONIC_A] = cc / det
@@ -312,7 +320,8 @@ def make(dt) -> SimpleNamespace:
         # colour: clamp mask, SH coefficients and the view direction
         dist = d.norm()
         direction = d / dist
-        raw = view_color(g, sh, n_sh, direction, view_dependent)
+        basis = view_basis(direction, view_dependent)
+        raw = view_color(g, sh, n_sh, basis, view_dependent)
         g_col = vec3(0.0)
         for c in ti.static(range(3)):
             if raw[c] > 0.0:
@@ -321,7 +330,6 @@ def make(dt) -> SimpleNamespace:
             d_sh[g, 0, c] = d_sh[g, 0, c] + dt(SH_C0) * g_col[c]
         g_d = vec3(0.0)
         if ti.static(view_dependent):  # degree 0 does not depend on the view direction
-            basis = sh_basis(direction)
             for k in ti.static(range(1, 16)):
                 if k < n_sh:
                     for c in ti.static(range(3)):

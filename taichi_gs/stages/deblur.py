@@ -145,8 +145,8 @@ class DeblurConfig:
 
 PRESETS = {
     "paper": DeblurConfig(),
-    # CPU-sized: 1/25 of the iterations, so colours learn 8x faster; exposures wait for the scene to
-    # settle; full resolution (training at half size left speckles at full size: -7 dB on the sample).
+    # CPU-sized: 1/36 of the iterations at the shortest (below), so colours learn 8x faster; exposures wait for
+    # the scene to settle; full resolution (training at half size left speckles at full size: -7 dB on the sample).
     # k = 8 for time, so fast holds the k-view blur sum to 2 px steps (exposures up to 14 px; the
     # sample's learned exposures reach 12.2 px, a TUM slice's 13.8 px: with k = 7, 12 px, both warned;
     # adaptive_k spends the eighth view only where an exposure needs it; BENCHMARKS, "k up to 8");
