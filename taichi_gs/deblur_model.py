@@ -64,6 +64,37 @@ def anchor_groups(k: int, anchors: int) -> list[np.ndarray]:
 
 
 ANCHOR_VIEWS = 1000  # rasterizer view buffers of the padded anchor renders (apart from the k full renders')
+FROZEN_VIEWS = 2000  # those of :class:`FrozenAnchors` (kept across steps, so apart from the others)
+
+
+class FrozenAnchors:
+    """[ours] Anchor renders kept across the steps of a held-out fit (the scene frozen: only the exposure
+    moves): each step warps its virtual views from them, and the anchors are rendered again only when
+    their number changes or one would move more than ``refresh_px`` on the image (at ``depth`` metres,
+    focal ``focal`` px) from where it was rendered. The loss then depends on the exposure through the
+    warps alone, so a step needs no rasterizer backward."""
+
+    def __init__(self, refresh_px: float, focal: float, depth: float) -> None:
+        self.refresh_px, self.focal, self.depth = refresh_px, focal, depth
+        self.poses: list[np.ndarray] = []
+        self.views: list = []
+        self.renders = 0  # anchor renders made (for tests and benchmarks)
+
+    def anchors(self, scene: "BlurScene", wanted: list[np.ndarray]) -> tuple[list, list[np.ndarray]]:
+        """(views, the poses they were rendered at) for anchors wanted at poses ``wanted``."""
+        if len(wanted) != len(self.poses) or any(self._moved_px(old, new) > self.refresh_px
+                                                  for old, new in zip(self.poses, wanted)):
+            self.poses = [np.array(pose) for pose in wanted]
+            self.views = [scene.rasterizer.forward(scene.gaussians, scene.padded_camera(pose), view=FROZEN_VIEWS + a)
+                          for a, pose in enumerate(self.poses)]
+            self.renders += len(self.poses)
+        return self.views, self.poses
+
+    def _moved_px(self, old: np.ndarray, new: np.ndarray) -> float:
+        """Image travel (pixels) from camera ``old`` to ``new`` for points at ``depth`` (as ``exposure_px``)."""
+        relative = invert(old) @ new
+        angle = np.arccos(np.clip((np.trace(relative[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+        return float(self.focal * (np.linalg.norm(relative[:3, 3]) / self.depth + angle))
 
 
 class BlurScene:
@@ -138,7 +169,7 @@ class BlurScene:
     def step(self, frame: np.ndarray, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
              k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None,
              colour: np.ndarray | None = None, anchors: int = 0, fallback_depth: float | None = None,
-             observe: bool = True) -> BlurStep:
+             observe: bool = True, frozen: FrozenAnchors | None = None) -> BlurStep:
         """Render the frame's k virtual views, average them, apply the frame's affine ``colour``
         transform (3 x 4; None: identity), take (1 - l_B) L1 + l_B D-SSIM against ``frame`` plus
         ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``, back-propagate,
@@ -146,12 +177,16 @@ class BlurScene:
         gradients to the densification statistics when ``observe``. [ours] ``anchors`` > 0:
         render only that many padded anchor views (:func:`anchor_groups`) and warp the k views from them
         (``kernels.warp``); the mid view is then the anchor nearest the middle of the exposure, and
-        ``fallback_depth`` is the depth where an anchor has no surface (None: :func:`median_depth` of ``depth``)."""
+        ``fallback_depth`` is the depth where an anchor has no surface (None: :func:`median_depth` of ``depth``).
+        ``frozen`` (with ``anchors``, the scene frozen and no depth term: a held-out fit) keeps the anchor
+        renders across steps (:class:`FrozenAnchors`); the Gaussians then get no gradients."""
+        if frozen is not None and (rates is not None or anchors < 1 or lambda_depth > 0):
+            raise ValueError("frozen anchors need a frozen scene (rates None), anchors and no depth term")
         taus = exposure_taus(k)
         self.frame.from_numpy(np.ascontiguousarray(frame, np.float32))
         if anchors > 0:
             fallback = median_depth(depth) if fallback_depth is None else fallback_depth
-            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback)
+            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen)
         else:
             exposure = _RenderedExposure(self, base, d_start, d_end, taus)
         predicted, grad_predicted = self.blurred, self.grad_blur
@@ -169,7 +204,8 @@ class BlurScene:
         if lambda_depth > 0:
             target, grad_depth = exposure.depth_buffers(depth)
             depth_l1 = losses.masked_depth_l1(exposure.mid_view.depth, target, grad_depth, weight=lambda_depth)
-        self.gaussians.zero_grad()
+        if frozen is None:
+            self.gaussians.zero_grad()
         grad_taus, pose_grads = exposure.backward(self.grad_blur, grad_depth)
         g_start, g_end = exposure_pose_gradients(base, d_start, d_end, grad_taus, pose_grads)
         if rates is not None:
@@ -295,17 +331,21 @@ class _WarpedExposure:
     ``scene.blurred``; the same interface as :class:`_RenderedExposure`."""
 
     def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray,
-                 anchors: int, fallback_depth: float):
-        self.scene, self.taus = scene, taus
+                 anchors: int, fallback_depth: float, frozen: FrozenAnchors | None = None):
+        self.scene, self.taus, self.frozen = scene, taus, frozen
         self.groups = anchor_groups(len(taus), anchors)
         self.anchor_taus = np.array([float(np.mean(taus[g])) for g in self.groups])
         poses = [virtual_pose(base, d_start, d_end, tau) for tau in taus]
-        self.anchor_poses = [virtual_pose(base, d_start, d_end, tau) for tau in self.anchor_taus]
+        wanted = [virtual_pose(base, d_start, d_end, tau) for tau in self.anchor_taus]
+        if frozen is None:
+            rast, gs = scene.rasterizer, scene.gaussians
+            self.anchor_poses = wanted
+            self.anchor_views = [rast.forward(gs, scene.padded_camera(pose), view=ANCHOR_VIEWS + a)
+                                 for a, pose in enumerate(wanted)]
+        else:
+            self.anchor_views, self.anchor_poses = frozen.anchors(scene, wanted)
         self.relative = [np.stack([invert(self.anchor_poses[a]) @ poses[i] for i in group])
                          for a, group in enumerate(self.groups)]
-        rast, gs = scene.rasterizer, scene.gaussians
-        self.anchor_views = [rast.forward(gs, scene.padded_camera(pose), view=ANCHOR_VIEWS + a)
-                             for a, pose in enumerate(self.anchor_poses)]
         mid = int(np.argmin(np.abs(self.anchor_taus - 0.5)))
         self.mid_view, self.mid_tau = self.anchor_views[mid], float(self.anchor_taus[mid])
         self.depths = scene.warp_buffers(len(self.groups), max(len(g) for g in self.groups))
@@ -323,7 +363,8 @@ class _WarpedExposure:
 
     def backward(self, grad_blurred, grad_depth) -> tuple[list[float], list[np.ndarray]]:
         """As :meth:`_RenderedExposure.backward`; the gradients come for the k views (through their warps)
-        and for the anchors (through the warps and their renders)."""
+        and for the anchors (through the warps and their renders). Frozen anchors are fixed renders, not
+        functions of the exposure: the gradients come for the k views alone, and none reach the Gaussians."""
         scene = self.scene
         view_grads, anchor_grads = [], []
         for a, view in enumerate(self.anchor_views):  # the groups are consecutive runs of the k views, in order
@@ -332,6 +373,9 @@ class _WarpedExposure:
                                        scene.warp_margin, 1.0 / len(self.taus), grad_anchor)
             g_views, g_anchor = relative_pose_gradients(self.anchor_poses[a], g_relative)
             view_grads.extend(g_views)
-            anchor_grads.append(g_anchor + scene.rasterizer.backward(
-                scene.gaussians, view, d_rgb=grad_anchor, d_depth=grad_depth if view is self.mid_view else None))
+            if self.frozen is None:
+                anchor_grads.append(g_anchor + scene.rasterizer.backward(
+                    scene.gaussians, view, d_rgb=grad_anchor, d_depth=grad_depth if view is self.mid_view else None))
+        if self.frozen is not None:
+            return list(self.taus), view_grads
         return [*self.taus, *self.anchor_taus], [*view_grads, *anchor_grads]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import taichi as ti
 
-from taichi_gs.deblur_model import BlurScene, anchor_groups, exposure_taus
+from taichi_gs.deblur_model import BlurScene, FrozenAnchors, anchor_groups, exposure_taus
 from taichi_gs.geometry import invert, raster_intrinsics, se3_exp, virtual_pose
 from taichi_gs.kernels import runtime, warp
 from taichi_gs.kernels.splat import to_device
@@ -277,6 +277,88 @@ def test_warped_step_gradients_match_finite_differences():
                 numeric = (loss(moved_plus) - loss(moved_minus)) / (2 * h)
                 scale = np.abs(grads[name]).max()
                 assert grads[name][(i, *idx)] == pytest.approx(numeric, abs=1e-4 * scale), (name, i, idx)
+
+
+def frozen_loss(model: BlurScene, frame, anchor_poses: list[np.ndarray], d_start, d_end,
+                z_fixed: list[np.ndarray]) -> float:
+    """L1 of the mean of the k views warped (at the given depths) from float64 renders at the fixed
+    ``anchor_poses`` (NumPy): the loss of a held-out fit's step with frozen anchors."""
+    taus = exposure_taus(K_VIEWS)
+    Kr = raster_intrinsics(K)
+    blurred = 0.0
+    for a, group in enumerate(anchor_groups(K_VIEWS, len(anchor_poses))):
+        rgb = model.rasterizer.forward(model.gaussians, model.padded_camera(anchor_poses[a])).rgb.to_numpy()
+        for i in group:
+            M = invert(anchor_poses[a]) @ virtual_pose(BASE, d_start, d_end, taus[i])
+            blurred = blurred + interpolate(rgb, *anchor_coordinates(z_fixed[i], M, Kr, STEP_MARGIN)) / K_VIEWS
+    return float(np.abs(blurred - frame).mean())
+
+
+def test_frozen_anchor_step_gradients_match_finite_differences():
+    """[ours] A held-out fit's step with frozen anchors: the loss depends on the exposure through the
+    warps from renders at fixed poses alone; its exposure gradients against finite differences of that
+    loss, and the Gaussians' gradients untouched (no rasterizer backward)."""
+    runtime.init()
+    frame, depth = targets(6)
+    model = BlurScene(scene(4), K, WIDTH, HEIGHT, precision="f64", warp_margin=STEP_MARGIN)
+    frozen = FrozenAnchors(refresh_px=1e9, focal=K[0, 0], depth=3.0)
+    model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, 0.0, 0.0, rates=None, anchors=ANCHORS, frozen=frozen)
+    moved = np.array([0.004, -0.003, 0.002, 0.003, -0.002, 0.001])  # the fit moved on: the anchors stay
+    d_start, d_end = D_START + moved, D_END - 0.5 * moved
+    grads_before = model.gaussians.download(grads=True)
+    step = model.step(frame, depth, BASE, d_start, d_end, K_VIEWS, 0.0, 0.0, rates=None, anchors=ANCHORS,
+                      frozen=frozen)
+    assert frozen.renders == ANCHORS
+    for name, value in model.gaussians.download(grads=True).items():
+        np.testing.assert_array_equal(value, grads_before[name], err_msg=name)
+    z_fixed = [model.warp_depths[a].to_numpy()[j] for a, group in enumerate(anchor_groups(K_VIEWS, ANCHORS))
+               for j in range(len(group))]
+    frame64 = frame.astype(np.float64)
+    poses = list(frozen.poses)
+    assert step.losses["l1"] == pytest.approx(frozen_loss(model, frame64, poses, d_start, d_end, z_fixed), rel=1e-9)
+    h = 1e-6
+    for which, analytic, value in (("d_start", step.grad_start, d_start), ("d_end", step.grad_end, d_end)):
+        numeric = []
+        for e in np.eye(6):
+            ends = {"d_start": d_start, "d_end": d_end}
+            plus = frozen_loss(model, frame64, poses, **{**ends, which: value + h * e}, z_fixed=z_fixed)
+            minus = frozen_loss(model, frame64, poses, **{**ends, which: value - h * e}, z_fixed=z_fixed)
+            numeric.append((plus - minus) / (2 * h))
+        assert np.abs(numeric).max() > 1e-3
+        np.testing.assert_allclose(analytic, numeric, rtol=1e-4, atol=1e-6 * np.abs(numeric).max(), err_msg=which)
+
+
+def test_frozen_anchors_render_again_only_when_moved_or_regrouped():
+    """[ours] The first frozen step is the ordinary warped step; later steps reuse the renders until an
+    anchor would move more than ``refresh_px`` or the number of anchors changes. A frozen step needs a
+    frozen scene and no depth term."""
+    runtime.init()
+    frame, depth = targets(7)
+    model = BlurScene(scene(4), K, WIDTH, HEIGHT, warp_margin=STEP_MARGIN)
+    model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, 0.2, 0.0, rates=None, anchors=1)
+    ordinary = model.blurred.to_numpy()
+    frozen = FrozenAnchors(refresh_px=1.0, focal=K[0, 0], depth=3.0)
+    model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, 0.2, 0.0, rates=None, anchors=1, frozen=frozen)
+    np.testing.assert_array_equal(model.blurred.to_numpy(), ordinary)
+    turn = np.zeros(6)
+    for angle_px, renders in ((0.6, 1), (0.9, 1), (1.3, 2), (1.9, 2)):  # pixels turned from the first render
+        turn[4] = angle_px / K[0, 0]
+        model.step(frame, depth, BASE, D_START + turn, D_END + turn, K_VIEWS, 0.2, 0.0, rates=None, anchors=1,
+                   frozen=frozen)
+        assert frozen.renders == renders, angle_px
+    model.step(frame, depth, BASE, D_START + turn, D_END + turn, K_VIEWS, 0.2, 0.0, rates=None, anchors=2,
+               frozen=frozen)
+    assert frozen.renders == 4  # regrouped: both anchors rendered
+    for bad in ({"rates": deblur_rates()}, {"lambda_depth": 0.1}, {"anchors": 0}):
+        args = {"rates": None, "lambda_depth": 0.0, "anchors": 1, **bad}
+        with pytest.raises(ValueError, match="frozen anchors"):
+            model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, 0.2, args["lambda_depth"], args["rates"],
+                       anchors=args["anchors"], frozen=frozen)
+
+
+def deblur_rates():
+    from taichi_gs.deblur_model import Rates
+    return Rates(means=1e-4, quats=1e-3, log_scales=1e-3, opacity_logits=1e-2, colors=1e-2)
 
 
 @pytest.mark.parametrize("motion, min_psnr", [("rotation", 45.0), ("rotation and translation", 42.0)])

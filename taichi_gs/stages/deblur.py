@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..deblur_model import BlurScene, Rates, median_depth
+from ..deblur_model import BlurScene, FrozenAnchors, Rates, median_depth
 from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
 from ..geometry import invert, se3_log, virtual_pose
@@ -86,6 +86,10 @@ class DeblurConfig:
     # [ours] a held-out frame's fit starts from the mid-exposure correction its training neighbours learned
     # (the mean of (d_s + d_e) / 2 of the nearest training frame on each side), not from its stage-2 pose
     test_fit_from_neighbours: bool = False
+    # [ours] with warp_views, a held-out fit keeps its anchor renders across steps and warps every step's views
+    # from them (no rasterizer pass while only the exposure moves), rendering them again once one would move
+    # more than this many pixels (0: render the anchors at every step, as training does)
+    test_fit_refresh_px: float = 0.0
     resolution_scale: int = 1  # train at 1/scale of the input resolution; outputs are full size
     seed: int = 0
     checkpoint_every: int = 1000
@@ -624,12 +628,15 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
     scene frozen, by re-blurring against its blurred input (``config.test_fit``: Adam or Rprop)."""
     exposure_step, colour_step = _test_fit_steps(config)
     colour = IDENTITY.copy()
+    frozen = None
+    if config.warp_views and config.test_fit_refresh_px > 0:
+        frozen = FrozenAnchors(config.test_fit_refresh_px, frames.K[0, 0], frames.median_depth[frame])
     guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
     for it in range(config.test_pose_iterations):
         k, anchors = _exposure_sampling(d, frames, frame, config)
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], k,
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
-                          anchors=anchors, fallback_depth=frames.median_depth[frame])
+                          anchors=anchors, fallback_depth=frames.median_depth[frame], frozen=frozen)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         d = exposure_step(d, np.stack([step.grad_start, step.grad_end]))
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
