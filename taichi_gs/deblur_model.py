@@ -368,7 +368,7 @@ class _WarpedExposure:
         scene = self.scene
         view_grads, anchor_grads = [], []
         for a, view in enumerate(self.anchor_views):  # the groups are consecutive runs of the k views, in order
-            grad_anchor = scene.anchor_gradient()
+            grad_anchor = scene.anchor_gradient() if self.frozen is None else None
             g_relative = warp.backward(grad_blurred, view.rgb, self.depths[a], self.relative[a], scene.K,
                                        scene.warp_margin, 1.0 / len(self.taus), grad_anchor)
             g_views, g_anchor = relative_pose_gradients(self.anchor_poses[a], g_relative)

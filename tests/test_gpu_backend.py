@@ -145,6 +145,7 @@ def kernel_outputs() -> dict[str, np.ndarray]:
     out["warp"], out["warp_depth"] = warped.to_numpy(), z.to_numpy()
     out["d_warp_pose"] = warp.backward(dev(target - 0.5), dev(anchor), z, views, K, margin, 0.5, grad_anchor)
     out["d_warp_anchor"] = grad_anchor.to_numpy()
+    out["d_warp_pose_only"] = warp.backward(dev(target - 0.5), dev(anchor), z, views, K, margin, 0.5, None)
     shapes = {"x": (300, 3), "y": (300,), "z": (300, 4, 3)}
     params = {name: dev(rng.normal(size=shape)) for name, shape in shapes.items()}
     grads = {name: dev(np.zeros(shape)) for name, shape in shapes.items()}

@@ -161,6 +161,23 @@ def test_backward_adds_into_the_anchor_gradient(anchor):
     np.testing.assert_allclose(first, second, rtol=1e-12)
 
 
+def test_backward_without_an_anchor_gradient_returns_the_same_pose_gradient(anchor):
+    """``grad_anchor=None`` (the anchor a constant, as in a frozen fit): the same dL/d epsilon, bit for bit,
+    and nothing left behind for the next backward that does scatter."""
+    rgb, depth, trans, M = anchor
+    a, _, z = run_warp(rgb, depth, trans, M)
+    g = to_device(np.random.default_rng(4).normal(size=(H, W, 3)), ti.f64)
+    grad_anchor = to_device(np.zeros(rgb.shape), ti.f64)
+    with_anchor = warp.backward(g, a, z, M, K_RASTER, MARGIN, WEIGHT, grad_anchor)
+    once = grad_anchor.to_numpy()
+    assert np.abs(once).max() > 0.01
+    np.testing.assert_array_equal(warp.backward(g, a, z, M, K_RASTER, MARGIN, WEIGHT, None), with_anchor)
+    np.testing.assert_array_equal(a.to_numpy(), rgb)  # the anchor stands in for the unwritten buffer
+    grad_anchor.fill(0.0)
+    warp.backward(g, a, z, M, K_RASTER, MARGIN, WEIGHT, grad_anchor)
+    np.testing.assert_array_equal(grad_anchor.to_numpy(), once)
+
+
 def test_views_of_one_launch_add_up(anchor):
     """Two views in one launch: the sum of the two warped separately; the backward per view likewise."""
     rgb, depth, trans, M = anchor
@@ -398,3 +415,4 @@ def test_anchor_count_follows_the_exposure_span():
     assert [list(g) for g in anchor_groups(5, 2)] == [[0, 1, 2], [3, 4]]
     assert [list(g) for g in anchor_groups(3, 9)] == [[0], [1], [2]]
     assert deblur.PRESETS["fast"].warp_views and not deblur.PRESETS["paper"].warp_views  # paper: the method's views
+    assert deblur.PRESETS["fast"].test_fit_refresh_px > 0 and deblur.PRESETS["paper"].test_fit_refresh_px == 0

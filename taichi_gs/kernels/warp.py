@@ -256,6 +256,7 @@ def _kernels(dt) -> SimpleNamespace:
         intr: vec4,
         margin: ti.i32,
         weight: dt,
+        with_anchor: ti.i32,  # 0: dL/d epsilon only (grad_anchor untouched)
         grad_anchor: img3,  # out, added to (Hp, Wp, 3)
         rows: img2,  # out, zero on entry (>= H V, N_POSE): dL/d epsilon per image row and view
     ):
@@ -267,7 +268,8 @@ def _kernels(dt) -> SimpleNamespace:
                                                                                hp, wp)
                 g = weight * rgb_at(grad_out, v, u)
                 pose = pose_of(X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y, g, anchor_rgb, intr)
-                scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor, 0, False)
+                if with_anchor:
+                    scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor, 0, False)
                 for c in ti.static(range(N_POSE)):
                     ti.atomic_add(rows[v * n_views + view, c], pose[c])
 
@@ -281,6 +283,7 @@ def _kernels(dt) -> SimpleNamespace:
         intr: vec4,
         margin: ti.i32,
         weight: dt,
+        with_anchor: ti.i32,  # 0: dL/d epsilon only (no scatter; grad_anchor untouched)
         lanes: ti.i32,
         private: ti.types.ndarray(dtype=dt, ndim=1),  # scratch (lanes, Hp, Wp, 3) flat, zero on entry and on exit
         grad_anchor: img3,  # out, added to (Hp, Wp, 3)
@@ -296,12 +299,13 @@ def _kernels(dt) -> SimpleNamespace:
                         acc = ti.Vector.zero(dt, N_POSE)  # the row's reads, then its writes (module docstring)
                         for u in range(grad_out.shape[1]):
                             acc += pixel_pose(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight)
-                        for u in range(grad_out.shape[1]):
-                            pixel_scatter(u, v, grad_out, z_in, view, R, t, intr, margin, weight,
-                                          anchor_rgb.shape[0], anchor_rgb.shape[1], private, lane, True)
+                        if with_anchor:
+                            for u in range(grad_out.shape[1]):
+                                pixel_scatter(u, v, grad_out, z_in, view, R, t, intr, margin, weight,
+                                              anchor_rgb.shape[0], anchor_rgb.shape[1], private, lane, True)
                         for c in ti.static(range(N_POSE)):
                             rows[v * n_views + view, c] = acc[c]
-        for i in range(grad_anchor.shape[0] * spread):
+        for i in range(grad_anchor.shape[0] * spread * with_anchor):
             if i % spread == 0:
                 y = i // spread
                 for x in range(grad_anchor.shape[1]):
@@ -359,10 +363,11 @@ def accumulate(anchor_rgb: ti.Ndarray, anchor_depth: ti.Ndarray, anchor_trans: t
 
 
 def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, targets_to_anchor: np.ndarray,
-             K: np.ndarray, margin: int, weight: float, grad_anchor: ti.Ndarray) -> np.ndarray:
+             K: np.ndarray, margin: int, weight: float, grad_anchor: ti.Ndarray | None) -> np.ndarray:
     """Given dL/d out of :func:`accumulate`'s term (``grad_out`` (H, W, 3); the term is ``weight`` x the
-    sum of the warped views), add dL/d anchor colour into ``grad_anchor`` and return dL/d epsilon (V, 6)
-    [translation, rotation] for ``exp(epsilon) @ targets_to_anchor[i]``, epsilon in the anchor's frame."""
+    sum of the warped views), add dL/d anchor colour into ``grad_anchor`` (None: not wanted, the anchor is
+    a constant) and return dL/d epsilon (V, 6) [translation, rotation] for ``exp(epsilon) @
+    targets_to_anchor[i]``, epsilon in the anchor's frame."""
     views = len(np.asarray(targets_to_anchor).reshape(-1, 4, 4))
     _check(anchor_rgb, grad_out, margin, z, views)
     dtype, height = grad_out.dtype, grad_out.shape[0]
@@ -370,14 +375,17 @@ def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, target
     transforms, intr = _args(targets_to_anchor, K, dtype)
     kernels = _kernels(dtype)
     backend = runtime.current()
+    with_anchor = int(grad_anchor is not None)
+    grad_anchor = anchor_rgb if grad_anchor is None else grad_anchor  # any (Hp, Wp, 3) array: not written
     if backend.gpu_kernels:
         rows.fill(0.0)
-        kernels.backward_atomic(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, grad_anchor, rows)
+        kernels.backward_atomic(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, with_anchor,
+                                grad_anchor, rows)
     else:
         lanes = max(backend.cpu_threads, 1)
         private = _private_gradients(lanes, tuple(anchor_rgb.shape), dtype)
-        kernels.backward_lanes(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, lanes, private,
-                               grad_anchor, rows)
+        kernels.backward_lanes(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, with_anchor, lanes,
+                               private, grad_anchor, rows)
     return rows.to_numpy()[: height * views].astype(np.float64).reshape(height, views, N_POSE).sum(axis=0)
 
 
