@@ -11,7 +11,9 @@ import numpy as np
 
 from .density import DensityControl
 from .gaussian_store import FIELDS, GaussianStore, morton_order
-from .geometry import exposure_pose_gradients, invert, raster_intrinsics, relative_pose_gradients, virtual_pose
+from .geometry import (
+    exposure_pose_gradients, invert, raster_intrinsics, relative_pose_gradients, so3_log, virtual_pose,
+)
 from .noreference import eroded
 from .render import Camera, Rasterizer, affine, blur, losses, to_device, warp
 from .splats import SH_C0, Splats, logit, rgb_to_sh_dc
@@ -93,7 +95,7 @@ class FrozenAnchors:
     def _moved_px(self, old: np.ndarray, new: np.ndarray) -> float:
         """Image travel (pixels) from camera ``old`` to ``new`` for points at ``depth`` (as ``exposure_px``)."""
         relative = invert(old) @ new
-        angle = np.arccos(np.clip((np.trace(relative[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
+        angle = np.linalg.norm(so3_log(relative[:3, :3]))
         return float(self.focal * (np.linalg.norm(relative[:3, 3]) / self.depth + angle))
 
 
@@ -376,6 +378,5 @@ class _WarpedExposure:
             if self.frozen is None:
                 anchor_grads.append(g_anchor + scene.rasterizer.backward(
                     scene.gaussians, view, d_rgb=grad_anchor, d_depth=grad_depth if view is self.mid_view else None))
-        if self.frozen is not None:
-            return list(self.taus), view_grads
-        return [*self.taus, *self.anchor_taus], [*view_grads, *anchor_grads]
+        anchor_taus = [] if self.frozen is not None else list(self.anchor_taus)
+        return [*self.taus, *anchor_taus], [*view_grads, *anchor_grads]
