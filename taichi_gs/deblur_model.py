@@ -59,10 +59,26 @@ def exposure_taus(k: int) -> np.ndarray:
     return np.linspace(0.0, 1.0, k) if k > 1 else np.array([0.5])
 
 
+def anchor_count(k: int, anchors: int) -> int:
+    """[ours] Anchor renders for k virtual views when ``anchors`` are wanted: the least odd number not
+    below it, at most the largest odd number not above k, so that one anchor sits at the exposure's middle."""
+    odd = max(anchors, 1) | 1
+    return min(odd, k if k % 2 else max(k - 1, 1))
+
+
 def anchor_groups(k: int, anchors: int) -> list[np.ndarray]:
-    """[ours] The k virtual views split into ``anchors`` (1..k) runs of neighbours, each warped from one
-    anchor render at the mean exposure fraction of its run."""
-    return np.array_split(np.arange(k), min(max(anchors, 1), k))
+    """[ours] The k virtual views split into :func:`anchor_count` runs of neighbours, each warped from one
+    anchor render at the mean exposure fraction of its run. The runs' sizes are symmetric about the middle
+    run, whose anchor therefore sits at tau = 1/2: the mid-exposure pose, where the depth loss compares the
+    render with the frame's depth and the densification statistics are gathered."""
+    count = anchor_count(k, anchors)
+    sizes = np.full(count, k // count)
+    extra, middle = k % count, count // 2
+    sizes[middle] += extra % 2
+    for i in range(extra // 2):
+        sizes[middle - 1 - i] += 1
+        sizes[middle + 1 + i] += 1
+    return np.split(np.arange(k), np.cumsum(sizes)[:-1])
 
 
 ANCHOR_VIEWS = 1000  # rasterizer view buffers of the padded anchor renders (apart from the k full renders')
@@ -177,8 +193,8 @@ class BlurScene:
         ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``, back-propagate,
         and (unless ``rates`` is None: scene frozen) apply Adam to the Gaussians, adding the step's positional
         gradients to the densification statistics when ``observe``. [ours] ``anchors`` > 0:
-        render only that many padded anchor views (:func:`anchor_groups`) and warp the k views from them
-        (``kernels.warp``); the mid view is then the anchor nearest the middle of the exposure, and
+        render that many padded anchor views, rounded up to an odd number (:func:`anchor_groups`), and warp the
+        k views from them (``kernels.warp``); the mid view is then the middle anchor, at tau = 1/2, and
         ``fallback_depth`` is the depth where an anchor has no surface (None: :func:`median_depth` of ``depth``).
         ``frozen`` (with ``anchors``, the scene frozen and no depth term: a held-out fit) keeps the anchor
         renders across steps (:class:`FrozenAnchors`); the Gaussians then get no gradients."""

@@ -213,7 +213,7 @@ K = np.array([[38.0, 0.0, 19.3], [0.0, 37.0, 15.6], [0.0, 0.0, 1.0]])  # OpenCV 
 BASE = se3_exp(np.array([0.05, -0.08, 0.03, 0.04, -0.03, 0.02]))
 D_START = np.array([-0.03, 0.012, -0.008, 0.01, -0.015, 0.006])
 D_END = np.array([0.025, -0.01, 0.012, -0.012, 0.018, -0.004])
-K_VIEWS, ANCHORS, LAMBDA_DEPTH = 5, 2, 0.3
+K_VIEWS, ANCHORS, LAMBDA_DEPTH = 5, 3, 0.3  # three anchors: the middle one at mid-exposure
 
 
 def scene(seed: int, n: int = 40, depth: tuple = (2.5, 4.0)) -> Splats:
@@ -296,6 +296,24 @@ def test_warped_step_gradients_match_finite_differences():
                 assert grads[name][(i, *idx)] == pytest.approx(numeric, abs=1e-4 * scale), (name, i, idx)
 
 
+@pytest.mark.parametrize("anchors", [1, 2, 3, 4, 5])
+def test_the_depth_loss_is_taken_at_mid_exposure(anchors):
+    """[ours] Whatever number of anchors is asked for, one is rendered at tau = 1/2 and carries the depth
+    loss: against the blended depth of a plain render at the mid-exposure pose the loss vanishes, against
+    one a quarter of the exposure away it does not."""
+    runtime.init()
+    model = BlurScene(scene(4), K, WIDTH, HEIGHT, precision="f64", warp_margin=STEP_MARGIN)
+    frame = np.zeros((HEIGHT, WIDTH, 3), np.float32)
+    losses = {}
+    for tau in (0.5, 0.25):
+        view = model.rasterizer.forward(model.gaussians, model.camera(virtual_pose(BASE, D_START, D_END, tau)))
+        depth = view.depth.to_numpy().astype(np.float32)
+        assert (depth > 0.5).mean() > 0.5  # the scene covers most of the view
+        step = model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, 0.2, 1.0, rates=None, anchors=anchors)
+        losses[tau] = step.losses["depth"]
+    assert losses[0.5] < 1e-5 and losses[0.25] > 1e-2, losses
+
+
 def frozen_loss(model: BlurScene, frame, anchor_poses: list[np.ndarray], d_start, d_end,
                 z_fixed: list[np.ndarray]) -> float:
     """L1 of the mean of the k views warped (at the given depths) from float64 renders at the fixed
@@ -363,9 +381,9 @@ def test_frozen_anchors_render_again_only_when_moved_or_regrouped():
         model.step(frame, depth, BASE, D_START + turn, D_END + turn, K_VIEWS, 0.2, 0.0, rates=None, anchors=1,
                    frozen=frozen)
         assert frozen.renders == renders, angle_px
-    model.step(frame, depth, BASE, D_START + turn, D_END + turn, K_VIEWS, 0.2, 0.0, rates=None, anchors=2,
+    model.step(frame, depth, BASE, D_START + turn, D_END + turn, K_VIEWS, 0.2, 0.0, rates=None, anchors=3,
                frozen=frozen)
-    assert frozen.renders == 4  # regrouped: both anchors rendered
+    assert frozen.renders == 5  # regrouped: all three anchors rendered
     for bad in ({"rates": deblur_rates()}, {"lambda_depth": 0.1}, {"anchors": 0}):
         args = {"rates": None, "lambda_depth": 0.0, "anchors": 1, **bad}
         with pytest.raises(ValueError, match="frozen anchors"):
@@ -405,14 +423,17 @@ def test_warped_exposure_follows_the_rendered_one(motion, min_psnr):
 def test_anchor_count_follows_the_exposure_span():
     config = deblur.DeblurConfig(k=7, warp_views=True, warp_px=4.0)
     focal, depth = 200.0, 2.0
-    spans = {0.5: 1, 8.0: 1, 8.5: 2, 20.0: 3, 400.0: 7}
+    spans = {0.5: 1, 8.0: 1, 8.5: 3, 20.0: 3, 24.5: 5, 400.0: 7}  # odd: one anchor at mid-exposure
     for span, expected in spans.items():
         d = np.array([np.zeros(6), np.r_[0, 0, 0, span / focal, 0, 0]])
         assert deblur.exposure_px(d[0], d[1], focal, depth) == pytest.approx(span)
         assert deblur._anchors(d, focal, depth, config, 7) == expected
     assert deblur._anchors(d, focal, depth, deblur.DeblurConfig(k=7), 7) == 0
     assert deblur.warp_margin(config) == 6 and deblur.warp_margin(deblur.DeblurConfig()) == 0
-    assert [list(g) for g in anchor_groups(5, 2)] == [[0, 1, 2], [3, 4]]
+    assert [list(g) for g in anchor_groups(5, 2)] == [[0, 1], [2], [3, 4]]
+    assert [list(g) for g in anchor_groups(8, 2)] == [[0, 1, 2], [3, 4], [5, 6, 7]]
+    assert [list(g) for g in anchor_groups(8, 8)] == [[0], [1], [2], [3, 4], [5], [6], [7]]
     assert [list(g) for g in anchor_groups(3, 9)] == [[0], [1], [2]]
+    assert deblur._anchors(d, focal, depth, deblur.DeblurConfig(k=8, warp_views=True, warp_px=4.0), 8) == 7
     assert deblur.PRESETS["fast"].warp_views and not deblur.PRESETS["paper"].warp_views  # paper: the method's views
     assert deblur.PRESETS["fast"].test_fit_refresh_px > 0 and deblur.PRESETS["paper"].test_fit_refresh_px == 0

@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..deblur_model import BlurScene, FrozenAnchors, Rates, median_depth
+from ..deblur_model import BlurScene, FrozenAnchors, Rates, anchor_count, median_depth
 from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
 from ..geometry import invert, se3_log, virtual_pose
@@ -140,11 +140,12 @@ class DeblurConfig:
     densify_by: str = "gradient"
     error_densify_share: float = 0.05
     error_densify_frames: int = 4
-    # [ours] warped virtual views: render only the fewest anchor views (padded by warp_px + 2 pixels) that
-    # leave every virtual view within warp_px of one, and make the k views by warping the anchors' renders
-    # through their depth (exact for rotations; disocclusions of translations are approximated)
+    # [ours] warped virtual views: render only the fewest anchor views (padded by warp_px + 2 pixels; an odd
+    # number, one at mid-exposure) that leave every virtual view within warp_px of one, and make the k views
+    # by warping the anchors' renders through their depth (exact for rotations; disocclusions of
+    # translations are approximated). 12 px: BENCHMARKS, "One anchor at mid-exposure"
     warp_views: bool = False
-    warp_px: float = 6.0
+    warp_px: float = 12.0
 
 
 PRESETS = {
@@ -518,10 +519,11 @@ def warp_margin(config: DeblurConfig) -> int:
 
 def _anchors(d: np.ndarray, focal: float, depth: float, config: DeblurConfig, k: int) -> int:
     """[ours] Anchor renders of one exposure with ``warp_views`` (0: render all k views): the fewest that
-    leave every virtual view within ``warp_px`` of its anchor, ceil(span / (2 warp_px)), within [1, k]."""
+    leave every virtual view within ``warp_px`` of its anchor, ceil(span / (2 warp_px)), made odd so that one
+    sits at mid-exposure (``deblur_model.anchor_count``)."""
     if not config.warp_views:
         return 0
-    return int(min(max(math.ceil(exposure_px(d[0], d[1], focal, depth) / (2.0 * config.warp_px)), 1), k))
+    return anchor_count(k, math.ceil(exposure_px(d[0], d[1], focal, depth) / (2.0 * config.warp_px)))
 
 
 def _phase(sequence: Sequence, sourced: np.ndarray | None, model: BlurScene, cache: dict[int, _Frames],
