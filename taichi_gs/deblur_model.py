@@ -62,8 +62,7 @@ def exposure_taus(k: int) -> np.ndarray:
 def anchor_count(k: int, anchors: int) -> int:
     """[ours] Anchor renders for k virtual views when ``anchors`` are wanted: the least odd number not
     below it, at most the largest odd number not above k, so that one anchor sits at the exposure's middle."""
-    odd = max(anchors, 1) | 1
-    return min(odd, k if k % 2 else max(k - 1, 1))
+    return min(max(anchors, 1) | 1, k if k % 2 else k - 1)
 
 
 def anchor_groups(k: int, anchors: int) -> list[np.ndarray]:
@@ -364,7 +363,7 @@ class _WarpedExposure:
             self.anchor_views, self.anchor_poses = frozen.anchors(scene, wanted)
         self.relative = [np.stack([invert(self.anchor_poses[a]) @ poses[i] for i in group])
                          for a, group in enumerate(self.groups)]
-        mid = int(np.argmin(np.abs(self.anchor_taus - 0.5)))
+        mid = len(self.groups) // 2  # the middle run's anchor, at tau = 1/2 (anchor_groups)
         self.mid_view, self.mid_tau = self.anchor_views[mid], float(self.anchor_taus[mid])
         self.depths = scene.warp_buffers(len(self.groups), max(len(g) for g in self.groups))
         for a, anchor in enumerate(self.anchor_views):
