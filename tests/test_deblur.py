@@ -160,6 +160,29 @@ def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
     assert result.gaussians > len(before) and np.percentile(width, 99) <= 0.6 * 1.05
 
 
+@pytest.mark.parametrize("headroom", [0.0, 1.3])
+def test_a_scene_handed_over_above_the_cap_densifies_within_the_headroom(tmp_path, headroom):
+    """Stage 2 hands over twice ``max_gaussians``: without headroom the cap is full from the start and
+    nothing grows; with ``densify_headroom = 1.3`` the cap is 1.3 x the handed-over count, so one
+    densification by error grows its 10% share."""
+    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.io.sequence import load_sequence
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    out = tmp_path / "out"
+    write_refine_outputs(sequence, out, voxel=0.08)
+    before = len(read_splats(out / "refine" / "splats.ply"))
+    config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=2, iterations=2, densify_from=1,
+                                 densify_until=1, densify_every=1, prune_opacity=0.0, prune_scale=1e9,
+                                 fill_uncovered=False, exposure_from=1000, test_pose_iterations=0, holdout_every=0,
+                                 checkpoint_every=100, densify_by="error", error_densify_share=0.1,
+                                 max_gaussians=before // 2, densify_headroom=headroom)
+    result = run_deblur(sequence, out, config)
+    assert result.gaussians == before + (int(0.1 * before) if headroom else 0)
+
+
 @pytest.mark.parametrize("densify_by", ["error", "gradient"])
 def test_densification_by_error_grows_its_share_of_the_gaussians(tmp_path, densify_by):
     """One densification after one step: by error, exactly the share of the Gaussians with the most

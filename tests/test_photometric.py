@@ -12,7 +12,7 @@ import taichi as ti
 from taichi_gs.kernels import runtime
 from taichi_gs.photometric import IDENTITY, affine_backward, apply_affine, identity_penalty
 from taichi_gs.render import affine, to_device
-from taichi_gs.stages.deblur import PRESETS, scaled_schedule, training_frame
+from taichi_gs.stages.deblur import PRESETS, scaled_schedule, training_frame, with_headroom
 
 
 def _loss(image, M, weights):
@@ -89,6 +89,14 @@ def test_schedule_scales_with_training_views():
                               exposure_from=120)
     for n in range(15, 200):
         assert scaled_schedule(fast, n) == dataclasses.replace(scaled_schedule(old, n), iterations_per_view=0)
+
+
+def test_the_cap_leaves_headroom_above_what_stage_2_hands_over():
+    fast, paper = PRESETS["fast"], PRESETS["paper"]
+    assert fast.densify_headroom == 1.3 and paper.densify_headroom == 0.0  # the method: its cap alone
+    assert with_headroom(fast, 72_663) is fast  # the bundled sample's stage 2: 1.3 x 72,663 < 100k, unchanged
+    assert with_headroom(fast, 192_923).max_gaussians == 250_800  # a 60-frame sequence's stage 2 (BENCHMARKS)
+    assert with_headroom(paper, 10_000_000) is paper
 
 
 def test_epoch_sampling_visits_every_view_once_per_epoch():
