@@ -160,11 +160,9 @@ def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
     assert result.gaussians > len(before) and np.percentile(width, 99) <= 0.6 * 1.05
 
 
-@pytest.mark.parametrize("headroom", [0.0, 1.3])
-def test_a_scene_handed_over_above_the_cap_densifies_within_the_headroom(tmp_path, headroom):
-    """Stage 2 hands over twice ``max_gaussians``: without headroom the cap is full from the start and
-    nothing grows; with ``densify_headroom = 1.3`` the cap is 1.3 x the handed-over count, so one
-    densification by error grows its 10% share."""
+def _one_densification(tmp_path, **overrides) -> tuple[int, int]:
+    """(Gaussians stage 2 handed over, Gaussians after) of a two-step stage 3 on a stand-in stage 2 whose one
+    densification, after the first step, grows by 10% of the Gaussians by error (``densify_by = "error"``)."""
     from taichi_gs.standins import write_refine_outputs
     from taichi_gs.io.sequence import load_sequence
 
@@ -177,10 +175,18 @@ def test_a_scene_handed_over_above_the_cap_densifies_within_the_headroom(tmp_pat
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=2, iterations=2, densify_from=1,
                                  densify_until=1, densify_every=1, prune_opacity=0.0, prune_scale=1e9,
                                  fill_uncovered=False, exposure_from=1000, test_pose_iterations=0, holdout_every=0,
-                                 checkpoint_every=100, densify_by="error", error_densify_share=0.1,
-                                 max_gaussians=before // 2, densify_headroom=headroom)
-    result = run_deblur(sequence, out, config)
-    assert result.gaussians == before + (int(0.1 * before) if headroom else 0)
+                                 checkpoint_every=100, densify_by="error", error_densify_share=0.1)
+    config = dataclasses.replace(config, **{k: v(before) if callable(v) else v for k, v in overrides.items()})
+    return before, run_deblur(sequence, out, config).gaussians
+
+
+@pytest.mark.parametrize("headroom", [0.0, 1.3])
+def test_a_scene_handed_over_above_the_cap_densifies_within_the_headroom(tmp_path, headroom):
+    """Stage 2 hands over twice ``max_gaussians``: without headroom the cap is full from the start and
+    nothing grows; with ``densify_headroom = 1.3`` the cap is 1.3 x the handed-over count, so the
+    densification grows its 10% share."""
+    before, after = _one_densification(tmp_path, max_gaussians=lambda n: n // 2, densify_headroom=headroom)
+    assert after == before + (int(0.1 * before) if headroom else 0)
 
 
 @pytest.mark.parametrize("densify_by", ["error", "gradient"])
@@ -188,22 +194,8 @@ def test_densification_by_error_grows_its_share_of_the_gaussians(tmp_path, densi
     """One densification after one step: by error, exactly the share of the Gaussians with the most
     re-blur error grows (each clone or split adds one); by gradient above an unreachable threshold,
     none does."""
-    from taichi_gs.standins import write_refine_outputs
-    from taichi_gs.io.sequence import load_sequence
-
-    synth.generate(synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    out = tmp_path / "out"
-    write_refine_outputs(sequence, out, voxel=0.08)
-    before = len(read_splats(out / "refine" / "splats.ply"))
-    config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=2, iterations=2, densify_from=1,
-                                 densify_until=1, densify_every=1, densify_grad=1e9, prune_opacity=0.0,
-                                 prune_scale=1e9, fill_uncovered=False, exposure_from=1000, test_pose_iterations=0,
-                                 holdout_every=0, checkpoint_every=100, densify_by=densify_by,
-                                 error_densify_share=0.1)
-    result = run_deblur(sequence, out, config)
-    assert result.gaussians == before + (int(0.1 * before) if densify_by == "error" else 0)
+    before, after = _one_densification(tmp_path, densify_by=densify_by, densify_grad=1e9)
+    assert after == before + (int(0.1 * before) if densify_by == "error" else 0)
 
 
 def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupted_one(tmp_path):
