@@ -200,10 +200,10 @@ PRESETS = {
                          # rendered views at 600 / 40: 0.69-0.96x the stage-3 time, held-out PSNR +0.09 dB on the
                          # sample, +0.16 / +0.36 dB on two real captures (BENCHMARKS, "Warped virtual views")
                          warp_views=True,
-                         # [ours] room to densify above stage 2's count: a 60-frame and a 40-frame sequence handed
-                         # over 193k and 157k Gaussians (above the 100k cap: they never densified or filled) gained
-                         # +0.25 and +0.32 dB held-out at 1.09x and 1.03x the stage-3 time; scenes handed over under
-                         # 77k are unchanged (BENCHMARKS, "Room to densify")
+                         # [ours] room to densify above stage 2's count: three sequences handed over 157-193k
+                         # Gaussians (above the 100k cap: they never densified or filled) gained +0.18 to +0.32 dB
+                         # held-out at 1.03-1.09x the stage-3 time; scenes handed over under 77k are unchanged
+                         # (BENCHMARKS, "Room to densify")
                          densify_headroom=1.3),
 }
 
