@@ -160,9 +160,11 @@ def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
     assert result.gaussians > len(before) and np.percentile(width, 99) <= 0.6 * 1.05
 
 
-def _one_densification(tmp_path, **overrides) -> tuple[int, int]:
+def _one_densification(tmp_path, densify_by: str = "error", cap_share: float | None = None,
+                        **overrides) -> tuple[int, int]:
     """(Gaussians stage 2 handed over, Gaussians after) of a two-step stage 3 on a stand-in stage 2 whose one
-    densification, after the first step, grows by 10% of the Gaussians by error (``densify_by = "error"``)."""
+    densification, after the first step, grows by 10% of the Gaussians when ``densify_by`` is "error";
+    ``cap_share``: ``max_gaussians`` is that share of the handed-over count (None: the preset's cap)."""
     from taichi_gs.standins import write_refine_outputs
     from taichi_gs.io.sequence import load_sequence
 
@@ -175,8 +177,9 @@ def _one_densification(tmp_path, **overrides) -> tuple[int, int]:
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=2, iterations=2, densify_from=1,
                                  densify_until=1, densify_every=1, prune_opacity=0.0, prune_scale=1e9,
                                  fill_uncovered=False, exposure_from=1000, test_pose_iterations=0, holdout_every=0,
-                                 checkpoint_every=100, densify_by="error", error_densify_share=0.1)
-    config = dataclasses.replace(config, **{k: v(before) if callable(v) else v for k, v in overrides.items()})
+                                 checkpoint_every=100, densify_by=densify_by, error_densify_share=0.1, **overrides)
+    if cap_share is not None:
+        config = dataclasses.replace(config, max_gaussians=int(cap_share * before))
     return before, run_deblur(sequence, out, config).gaussians
 
 
@@ -185,7 +188,7 @@ def test_a_scene_handed_over_above_the_cap_densifies_within_the_headroom(tmp_pat
     """Stage 2 hands over twice ``max_gaussians``: without headroom the cap is full from the start and
     nothing grows; with ``densify_headroom = 1.3`` the cap is 1.3 x the handed-over count, so the
     densification grows its 10% share."""
-    before, after = _one_densification(tmp_path, max_gaussians=lambda n: n // 2, densify_headroom=headroom)
+    before, after = _one_densification(tmp_path, cap_share=0.5, densify_headroom=headroom)
     assert after == before + (int(0.1 * before) if headroom else 0)
 
 
