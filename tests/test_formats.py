@@ -132,6 +132,39 @@ def test_tum_sourced_pixels_are_those_undistortion_reads_from_the_raw_frame(tmp_
     assert load_sequence(folder, camera="fr3").sourced_pixels().all()  # no transform: every pixel seen
 
 
+def test_import_keeps_which_pixels_the_camera_saw(tmp_path):
+    """[ours] An undistorted TUM frame imported at half size: the copy's ``sourced.png`` gives the same
+    pixels as reading the original, also when the copy is read at half size again; a folder whose every
+    pixel was seen gets no mask."""
+    folder, _ = _write("tum", tmp_path)
+    original = load_sequence(folder, scale=0.5)
+    copy = import_sequence(original, tmp_path / "copy")
+    assert (copy / "sourced.png").is_file()
+    reread = load_sequence(copy)
+    assert reread.sourced_path == copy / "sourced.png"
+    np.testing.assert_array_equal(reread.sourced_pixels(), original.sourced_pixels())
+    quarter = load_sequence(copy, scale=0.5).sourced_pixels()  # a pixel counts when its 2 x 2 block does
+    np.testing.assert_array_equal(quarter, original.sourced_pixels().reshape(120, 2, 160, 2).all(axis=(1, 3)))
+    seen = import_sequence(load_sequence(folder, camera="fr3"), tmp_path / "seen")
+    assert not (seen / "sourced.png").exists() and load_sequence(seen).sourced_pixels().all()
+
+
+@pytest.mark.parametrize("mask", ["wrong size", "colour", "not a png"])
+def test_a_bad_sourced_mask_gives_a_one_line_error(tmp_path, mask):
+    folder, _ = _write("tum", tmp_path)
+    copy = import_sequence(load_sequence(folder, scale=0.5), tmp_path / "copy")
+    path = copy / "sourced.png"
+    if mask == "wrong size":
+        cv2.imwrite(str(path), np.full((10, 20), 255, np.uint8))
+    elif mask == "colour":
+        cv2.imwrite(str(path), np.full((240, 320, 3), 255, np.uint8))
+    else:
+        path.write_bytes(b"not a png")
+    with pytest.raises(InputError, match="sourced.png") as error:
+        load_sequence(copy).sourced_pixels()
+    assert "20x10" in str(error.value) or mask != "wrong size"
+
+
 def test_tum_frames_of_another_size_than_the_calibration_are_refused(tmp_path):
     folder, _ = _write("tum", tmp_path)
     seq = load_sequence(folder)

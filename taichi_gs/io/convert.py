@@ -1,8 +1,9 @@
 """``taichi-gs import``: any readable sequence written out in taichi-gs's own layout.
 
 Writes ``frames.txt``, ``rgb/NAME.png`` (8-bit), ``depth/NAME.png`` (uint16 at the sequence's depth
-scale), ``intrinsics.json``, and when the input has them ``groundtruth.txt``, ``exposure.txt`` and
-``sharp/``, each frame as the reader gives it (resampled, undistorted, masked, subsampled, scaled).
+scale), ``intrinsics.json``, and when the input has them ``groundtruth.txt``, ``exposure.txt``,
+``sharp/`` and ``sourced.png`` (the pixels that came from the camera, when some did not: an undistorted
+frame's border), each frame as the reader gives it (resampled, undistorted, masked, subsampled, scaled).
 Everything goes to a temporary folder beside OUT, renamed onto OUT at the end; the input is only read.
 """
 
@@ -49,6 +50,9 @@ def _write(sequence: Sequence, dest: Path, progress: Callable[[int, int], None] 
             progress(i + 1, len(sequence))
     write_text(dest / "frames.txt", "\n".join(lines) + "\n")
     write_text(dest / "intrinsics.json", intr.to_json())
+    sourced = sequence.sourced_pixels()
+    if not sourced.all():
+        write_png(dest / "sourced.png", np.where(sourced, 255, 0).astype(np.uint8))
     if sequence.gt_poses is not None:
         known = np.all(np.isfinite(sequence.gt_poses.reshape(len(sequence), -1)), axis=1)
         if known.any():

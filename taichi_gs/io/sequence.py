@@ -7,6 +7,8 @@ Own layout (written by ``taichi-gs synth``)::
     SEQ/groundtruth.txt   optional TUM trajectory (camera-to-world), matched to frames by time
     SEQ/exposure.txt      optional "timestamp" + start and end pose (tx ty tz qx qy qz qw each)
     SEQ/sharp/NAME.png    optional sharp mid-exposure colour, same stem as the rgb file
+    SEQ/sourced.png       optional 8-bit mask, 255 where a colour pixel came from camera pixels (what
+                          ``import`` writes for frames that had an unsourced border, e.g. undistorted ones)
 
 TUM layout: ``rgb.txt`` and ``depth.txt`` ("timestamp filename"), optional ``groundtruth.txt``;
 colour and depth associated by nearest timestamp as TUM's associate.py does.
@@ -78,7 +80,8 @@ class Sequence:
     Attributes: ``root``, ``layout`` ("tum" or "taichi-gs"), ``intrinsics``, ``timestamps`` (N,),
     ``rgb_paths``, ``depth_paths``, ``names`` (colour file stems), ``gt_poses`` (N x 4 x 4
     camera-to-world, NaN where ground truth does not cover a frame, or None), ``exposure_poses``
-    (N x 2 x 4 x 4 start/end, or None), ``sharp_paths`` (or None), ``transform`` (applied to each
+    (N x 2 x 4 x 4 start/end, or None), ``sharp_paths`` (or None), ``sourced_path`` (the own layout's
+    ``sourced.png``, or None), ``transform`` (applied to each
     frame as it is read: resampling, undistortion, masking; see ``io.transforms``), ``source``
     (how it was read: format, every, scale, camera) and ``load_options`` (the arguments of
     :func:`load_sequence`, recorded in a run's run.json so later commands reopen it the same way).
@@ -97,6 +100,7 @@ class Sequence:
         sharp_paths: list[Path] | None = None,
         names: list[str] | None = None,
         transform: FrameTransform | None = None,
+        sourced_path: Path | None = None,
     ):
         self.root = root
         self.layout = layout
@@ -109,6 +113,7 @@ class Sequence:
         self.exposure_poses = exposure_poses
         self.sharp_paths = sharp_paths
         self.transform = transform
+        self.sourced_path = sourced_path
         self.source: dict[str, object] = {"format": layout, "every": 1, "scale": 1.0}
         self.load_options: dict[str, Any] = {}
 
@@ -140,15 +145,29 @@ class Sequence:
     def sourced_pixels(self) -> np.ndarray:
         """Boolean H x W: the colour pixels made wholly from camera pixels. False only where a transform
         had no source (e.g. the border of an undistorted frame, which OpenCV fills by replicating the
-        edge). [ours] eval's real-data figures count these pixels only, and so do stage 3's photometric
-        losses with ``[deblur] sourced_pixels_only``."""
+        edge), or where the own layout's ``sourced.png`` says so. [ours] eval's real-data figures count
+        these pixels only, and so do stage 3's photometric losses with ``[deblur] sourced_pixels_only``."""
         h, w = self.intrinsics.height, self.intrinsics.width
-        if self.transform is None or not self.rgb_paths:
+        if not self.rgb_paths or (self.transform is None and self.sourced_path is None):
             return np.ones((h, w), bool)
         raw = read_color(self.rgb_paths[0]).shape[:2]
-        share = self.transform.sourced(np.ones(raw, np.float32))
+        share = np.ones(raw, np.float32) if self.sourced_path is None else self._stored_sourced(raw)
+        if self.transform is not None:
+            share = self.transform.sourced(share)
         self._check_size(self.rgb_paths[0], share.shape[:2], "colour")
         return share >= SOURCED
+
+    def _stored_sourced(self, raw: tuple[int, int]) -> np.ndarray:
+        """The own layout's ``sourced.png`` as a 0/1 float32 share on the frames' grid."""
+        path = self.sourced_path
+        mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if mask is None or mask.ndim != 2:
+            raise InputError(path, "unreadable or not a single-channel mask",
+                             "restore it (255 where a pixel came from the camera), or delete it to count every pixel")
+        if mask.shape != raw:
+            raise InputError(path, f"mask is {mask.shape[1]}x{mask.shape[0]}, the colour frames {raw[1]}x{raw[0]}",
+                             "give a mask at the colour frames' size, or delete it to count every pixel")
+        return (mask >= 128).astype(np.float32)
 
     def check_all(self) -> None:
         """Read every frame once, so corrupt files fail now rather than mid-stage."""
@@ -297,11 +316,12 @@ def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
         missing = [p for p in sharp_paths if not p.is_file()]
         if missing:
             raise InputError(missing[0], "sharp image missing", "restore it or remove the sharp/ folder")
+    sourced = root / "sourced.png"
     return Sequence(
         root, "taichi-gs", intrinsics, timestamps, rgb_paths, depth_paths,
         gt_poses=_ground_truth(root / "groundtruth.txt", timestamps),
         exposure_poses=_exposure(root / "exposure.txt", timestamps),
-        sharp_paths=sharp_paths,
+        sharp_paths=sharp_paths, sourced_path=sourced if sourced.is_file() else None,
     )
 
 
