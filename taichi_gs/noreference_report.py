@@ -22,7 +22,11 @@ And for held-out views only:
   and after) are warped into the held-out view through its sensor depth and the stage-3 poses, the
   better one (PSNR) scored against the held-out frame over the pixels the warp reaches (SSIM: over
   those whose whole 11 x 11 window the warp reaches); ``render_on_warp_mask_psnr_db`` / ``..._ssim``
-  score the render over the same pixels.
+  score the render over the same pixels. [ours] ``reblur_on_warp_mask_psnr_db`` / ``..._ssim`` score the
+  re-blurred render there: like the floor, it carries the held-out frame's own blur, so it tells a scene
+  worse than the neighbours apart from a held-out frame that is itself blurred (which the sharp render
+  loses to however good it is).
+``per_view`` lists every view's figures (``frame``: its name, ``index``, ``split``), in frame order.
 Where the reader's transforms leave pixels without a camera source (``Sequence.sourced_pixels``: an
 undistorted frame's border, which OpenCV fills by copying the edge), every figure leaves them out
 (SSIM: pixels whose whole window was seen); the result gives ``sourced_fraction``.
@@ -77,7 +81,7 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     if seen is not None:
         result["protocol"] += (f"; every figure over the {100 * sourced.mean():.1f}% of pixels the camera saw (the "
                                "undistorted frame's border without a source pixel left out)")
-    grid_rows, grid_titles = [], []
+    grid_rows, grid_titles, per_view = [], [], []
     for group, frames in (("test", test), ("train", train)):
         scores: dict[str, list[float]] = {}
         for i in frames:
@@ -102,14 +106,18 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
                                "warped_neighbour_ssim": masked_ssim(warped, frame, mask),
                                "render_on_warp_mask_psnr_db": masked_psnr(sharp, frame, mask),
                                "render_on_warp_mask_ssim": masked_ssim(sharp, frame, mask),
+                               "reblur_on_warp_mask_psnr_db": masked_psnr(reblurred, frame, mask),
+                               "reblur_on_warp_mask_ssim": masked_ssim(reblurred, frame, mask),
                                "warp_coverage": float(mask.mean())})
                 if len(grid_rows) < GRID_VIEWS:
                     grid_rows.append([frame, sharp, reblurred, np.where(mask[..., None], warped, 0.0)])
                     grid_titles.append(name)
             for key, value in values.items():
                 scores.setdefault(key, []).append(value)
+            per_view.append({"frame": name, "index": i, "split": group, **{k: float(v) for k, v in values.items()}})
         if scores:
             result[group] = {"views": len(frames), **{k: float(np.nanmean(v)) for k, v in scores.items()}}
+    result["per_view"] = sorted(per_view, key=lambda view: view["index"])
     if grid_rows:
         image_grid(Path(run_dir) / "report" / "no_reference_views.png", grid_rows,
                    ["held-out frame", "sharp render", "re-blurred render", "warped neighbour"], grid_titles)

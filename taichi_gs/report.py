@@ -124,6 +124,7 @@ def format_metrics(metrics: dict[str, Any]) -> str:
                 lines.append(f"  {split:6s} {s['views']:>5d} {number(s.get('psnr_db')):>8s} {number(s.get('ssim'), 1, 3):>6s} "
                              f"{number(s.get('blurred_input_psnr_db')):>10s} {number(s.get('blurred_input_ssim'), 1, 3):>10s} "
                              f"{number(s.get('inverse_depth_rmse'), 1, 4):>14s}")
+    lines += _no_reference_lines(metrics.get("no_reference"), number)
     if metrics.get("stages"):
         lines += ["", f"stages (arch {metrics.get('arch', 'none')})", f"  {'stage':8s} {'seconds':>9s} {'peak MB':>9s}"]
         for stage, s in metrics["stages"].items():
@@ -131,6 +132,29 @@ def format_metrics(metrics: dict[str, Any]) -> str:
     for warning in metrics.get("warnings", []):
         lines.append(f"warning: {warning}")
     return "\n".join(lines)
+
+
+def _no_reference_lines(figures: dict[str, Any] | None, number) -> list[str]:
+    """The real-data protocol's means per split (re-blur, sharpness, dark holes) and, for held-out views, the
+    sharp render against the held-out frames beside the warped-neighbour floor and the re-blurred render on
+    the floor's pixels."""
+    if not figures or not any(split in figures for split in ("test", "train")):
+        return []
+    lines = ["", "no-reference figures (real captures; metrics.json no_reference.protocol says how)",
+             f"  {'split':6s} {'views':>5s} {'re-blur dB':>10s} {'SSIM':>6s} {'sharpness':>9s} {'dark':>6s}"]
+    for split in ("test", "train"):
+        if split in figures:
+            s = figures[split]
+            lines.append(f"  {split:6s} {s['views']:>5d} {number(s.get('reblur_psnr_db')):>10s} "
+                         f"{number(s.get('reblur_ssim'), 1, 3):>6s} {number(s.get('gradient_energy_ratio'), 1, 3):>9s} "
+                         f"{number(s.get('dark_hole_fraction'), 100, 2):>5s}%")
+    held = figures.get("test", {})
+    if "held_out_psnr_db" in held:
+        lines += [f"  held-out frames against the sharp render: {number(held['held_out_psnr_db'])} dB",
+                  f"  on the floor's pixels: render {number(held.get('render_on_warp_mask_psnr_db'))}, re-blurred render "
+                  f"{number(held.get('reblur_on_warp_mask_psnr_db'))}, floor (warped neighbours) "
+                  f"{number(held.get('warped_neighbour_psnr_db'))} dB"]
+    return lines
 
 
 def _versions() -> dict[str, str]:

@@ -16,6 +16,7 @@ from taichi_gs.io.trajectory import write_tum
 from taichi_gs.noreference import (
     dark_hole_fraction, gradient_energy, laplacian_variance, masked_psnr, masked_ssim, sharpest_holdout, warp_to_view,
 )
+from taichi_gs.report import format_metrics
 from taichi_gs.stages.deblur import choose_split
 
 
@@ -136,6 +137,16 @@ def test_protocol_on_a_run_whose_renders_are_the_truth(tmp_path):
     expected = np.mean([psnr(sequence.sharp(i), sequence.color(i)) for i in test])
     assert held["held_out_psnr_db"] == pytest.approx(expected, abs=0.05)
     assert 0.3 < held["warp_coverage"] <= 1.0 and np.isfinite(held["warped_neighbour_psnr_db"])
+    # the re-blurred renders are the inputs themselves: on the floor's pixels too they match to 8-bit rounding
+    assert held["reblur_on_warp_mask_psnr_db"] > 45 > held["render_on_warp_mask_psnr_db"]
+    views = metrics["per_view"]
+    assert [v["index"] for v in views] == list(range(6)) and [v["frame"] for v in views] == sequence.names
+    assert sorted(v["index"] for v in views if v["split"] == "test") == sorted(test)
+    assert np.mean([v["held_out_psnr_db"] for v in views if v["split"] == "test"]) == pytest.approx(
+        held["held_out_psnr_db"], rel=1e-12)
+    printed = format_metrics({"trajectory": {}, "no_reference": metrics})
+    assert f"{held['reblur_psnr_db']:.2f}" in printed and f"{held['warped_neighbour_psnr_db']:.2f}" in printed
+    assert f"re-blurred render {held['reblur_on_warp_mask_psnr_db']:.2f}" in printed
     ceiling = []
     for i in test:  # the held-out frame over the mean of its nearest training frames, before and after
         near = [j for j in (max((t for t in train if t < i), default=None), min((t for t in train if t > i), default=None))
