@@ -65,14 +65,19 @@ def laplacian_variance(image: np.ndarray) -> float:
 
 def sharpest_holdout(sharpness: np.ndarray | list[float], every: int) -> tuple[list[int], list[int]]:
     """(train, test) indices: in each window of ``every`` consecutive frames the sharpest is a test view
-    (ties go to the earlier frame); ``every`` 0 holds nothing out."""
+    (ties go to the earlier frame); a last window shorter than ``every`` joins the one before it, so no
+    frame is held out for want of rivals (a lone last frame would be, however blurred); ``every`` 0 holds
+    nothing out."""
     sharpness = np.asarray(sharpness, dtype=np.float64)
     n = len(sharpness)
     if every <= 0:
         return list(range(n)), []
     if every < 2:
         raise ValueError(f"every must be 0 or at least 2, got {every}")
-    test = [start + int(np.argmax(sharpness[start:start + every])) for start in range(0, n, every)]
+    starts = list(range(0, n, every))
+    if len(starts) > 1 and n - starts[-1] < every:
+        starts.pop()
+    test = [start + int(np.argmax(sharpness[start:end])) for start, end in zip(starts, [*starts[1:], n])]
     if n - len(test) < 1:
         raise ValueError(f"{n} frames leave no training view with one test view every {every}")
     held = set(test)

@@ -54,7 +54,7 @@ def protocol_text(split: dict[str, Any]) -> str:
     every = split.get("holdout_every", 0)
     if split.get("holdout") == "sharpest":
         chosen = (f"held-out views: the sharpest frame (variance of the Laplacian) of each "
-                  f"window of {every} frames")
+                  f"window of {every} frames (a shorter last window joins the one before it)")
     elif every:
         chosen = f"held-out views: frames 1, 1 + {every}, 1 + 2 x {every}, ... (not chosen by sharpness)"
     else:

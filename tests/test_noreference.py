@@ -50,9 +50,12 @@ def test_gradient_energy_scales_with_contrast_and_falls_with_blur():
 
 
 def test_sharpest_holdout_takes_the_sharpest_of_each_window():
-    train, test = sharpest_holdout([1, 5, 2, 3, 3, 1, 4], every=3)
-    assert test == [1, 3, 6]  # windows [0, 3), [3, 6) (tie: earlier frame), [6, 7)
-    assert train == [0, 2, 4, 5]
+    train, test = sharpest_holdout([1, 5, 2, 3, 3, 1, 4, 2, 0, 9], every=3)
+    assert test == [1, 3, 9]  # windows [0, 3), [3, 6) (tie: earlier frame), [6, 10): the short last one joined
+    assert train == [0, 2, 4, 5, 6, 7, 8]
+    assert sharpest_holdout([1, 5, 2, 3, 3, 1, 0.5], every=3)[1] == [1, 3]  # a blurred lone last frame trains
+    assert sharpest_holdout([1, 5, 2, 3, 3, 1], every=3)[1] == [1, 3]
+    assert sharpest_holdout([1, 5], every=3)[1] == [1]  # one window, shorter than every: still one test view
     assert sharpest_holdout([1, 2, 3], every=0) == ([0, 1, 2], [])
     with pytest.raises(ValueError):
         sharpest_holdout([1.0], every=2)
