@@ -101,59 +101,65 @@ def _dropped_frames(estimated: int, matched: int, no_gt: list[str]) -> list[dict
     return dropped
 
 
+def _number(value: Any, scale: float = 1.0, digits: int = 2) -> str:
+    """A figure times ``scale`` as text with ``digits`` decimals; "n/a" when missing."""
+    return "n/a" if value is None else f"{value * scale:.{digits}f}"
+
+
 def format_metrics(metrics: dict[str, Any]) -> str:
     """metrics.json as aligned plain-text tables: trajectory errors per stage, image scores per
     split (with the blurred input's as the floor), time and memory per stage, warnings."""
-
-    def number(value: Any, scale: float = 1.0, digits: int = 2) -> str:
-        return "n/a" if value is None else f"{value * scale:.{digits}f}"
 
     lines = ["trajectory (after rigid alignment)",
              f"  {'stage':8s} {'ATE mm':>9s} {'RPE mm':>9s} {'RPE deg':>9s} {'frames':>7s}  dropped"]
     for stage, t in metrics["trajectory"].items():
         dropped = sum(d["count"] for d in t.get("dropped_frames", []))
-        lines.append(f"  {stage:8s} {number(t['ate_m'], 1000):>9s} {number(t['rpe_trans_m'], 1000):>9s} "
-                     f"{number(t['rpe_rot_deg'], 1, 3):>9s} {t['frames']:>7d}  {dropped}")
+        lines.append(f"  {stage:8s} {_number(t['ate_m'], 1000):>9s} {_number(t['rpe_trans_m'], 1000):>9s} "
+                     f"{_number(t['rpe_rot_deg'], 1, 3):>9s} {t['frames']:>7d}  {dropped}")
     images = metrics.get("images")
     if images:
-        lines += ["", f"images (stage 3 renders vs {images['ground_truth']})",
-                  f"  {'split':6s} {'views':>5s} {'PSNR dB':>8s} {'SSIM':>6s} {'input PSNR':>10s} {'input SSIM':>10s} {'inv-depth RMSE':>14s}"]
-        for split in ("test", "train"):
-            if split in images:
-                s = images[split]
-                lines.append(f"  {split:6s} {s['views']:>5d} {number(s.get('psnr_db')):>8s} {number(s.get('ssim'), 1, 3):>6s} "
-                             f"{number(s.get('blurred_input_psnr_db')):>10s} {number(s.get('blurred_input_ssim'), 1, 3):>10s} "
-                             f"{number(s.get('inverse_depth_rmse'), 1, 4):>14s}")
-    lines += _no_reference_lines(metrics.get("no_reference"), number)
+        lines += _split_table(f"images (stage 3 renders vs {images['ground_truth']})", images, [
+            ("PSNR dB", "psnr_db", 1, 2), ("SSIM", "ssim", 1, 3), ("input PSNR", "blurred_input_psnr_db", 1, 2),
+            ("input SSIM", "blurred_input_ssim", 1, 3), ("inv-depth RMSE", "inverse_depth_rmse", 1, 4)])
+    lines += _no_reference_lines(metrics.get("no_reference"))
     if metrics.get("stages"):
         lines += ["", f"stages (arch {metrics.get('arch', 'none')})", f"  {'stage':8s} {'seconds':>9s} {'peak MB':>9s}"]
         for stage, s in metrics["stages"].items():
-            lines.append(f"  {stage:8s} {number(s.get('seconds'), 1, 1):>9s} {number(s.get('peak_rss_mb'), 1, 0):>9s}")
+            lines.append(f"  {stage:8s} {_number(s.get('seconds'), 1, 1):>9s} {_number(s.get('peak_rss_mb'), 1, 0):>9s}")
     for warning in metrics.get("warnings", []):
         lines.append(f"warning: {warning}")
     return "\n".join(lines)
 
 
-def _no_reference_lines(figures: dict[str, Any] | None, number) -> list[str]:
+def _no_reference_lines(figures: dict[str, Any] | None) -> list[str]:
     """The real-data protocol's means per split (re-blur, sharpness, dark holes) and, for held-out views, the
     sharp render against the held-out frames beside the warped-neighbour floor and the re-blurred render on
     the floor's pixels."""
     if not figures or not any(split in figures for split in ("test", "train")):
         return []
-    lines = ["", "no-reference figures (real captures; metrics.json no_reference.protocol says how)",
-             f"  {'split':6s} {'views':>5s} {'re-blur dB':>10s} {'SSIM':>6s} {'sharpness':>9s} {'dark':>6s}"]
+    lines = _split_table("no-reference figures (real captures; metrics.json no_reference.protocol says how)",
+                         figures, [("re-blur dB", "reblur_psnr_db", 1, 2), ("SSIM", "reblur_ssim", 1, 3),
+                                           ("sharpness", "gradient_energy_ratio", 1, 3),
+                                           ("dark %", "dark_hole_fraction", 100, 2)])
+    held = figures.get("test", {})
+    if "held_out_psnr_db" in held:
+        lines += [f"  held-out frames against the sharp render: {_number(held['held_out_psnr_db'])} dB",
+                  f"  on the floor's pixels: render {_number(held.get('render_on_warp_mask_psnr_db'))}, re-blurred render "
+                  f"{_number(held.get('reblur_on_warp_mask_psnr_db'))}, floor (warped neighbours) "
+                  f"{_number(held.get('warped_neighbour_psnr_db'))} dB"]
+    return lines
+
+
+def _split_table(title: str, figures: dict[str, Any], columns: list[tuple[str, str, float, int]]) -> list[str]:
+    """A titled block with a row per split (test, train) present in ``figures``: its views, then each column's
+    (header, key, scale, digits) figure."""
+    widths = [max(len(header), 6) for header, *_ in columns]
+    lines = ["", title, f"  {'split':6s} {'views':>5s} " + " ".join(f"{h:>{w}s}" for (h, *_), w in zip(columns, widths))]
     for split in ("test", "train"):
         if split in figures:
             s = figures[split]
-            lines.append(f"  {split:6s} {s['views']:>5d} {number(s.get('reblur_psnr_db')):>10s} "
-                         f"{number(s.get('reblur_ssim'), 1, 3):>6s} {number(s.get('gradient_energy_ratio'), 1, 3):>9s} "
-                         f"{number(s.get('dark_hole_fraction'), 100, 2):>5s}%")
-    held = figures.get("test", {})
-    if "held_out_psnr_db" in held:
-        lines += [f"  held-out frames against the sharp render: {number(held['held_out_psnr_db'])} dB",
-                  f"  on the floor's pixels: render {number(held.get('render_on_warp_mask_psnr_db'))}, re-blurred render "
-                  f"{number(held.get('reblur_on_warp_mask_psnr_db'))}, floor (warped neighbours) "
-                  f"{number(held.get('warped_neighbour_psnr_db'))} dB"]
+            lines.append(f"  {split:6s} {s['views']:>5d} " + " ".join(
+                f"{_number(s.get(key), scale, digits):>{w}s}" for (_, key, scale, digits), w in zip(columns, widths)))
     return lines
 
 
