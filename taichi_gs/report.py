@@ -108,7 +108,8 @@ def _number(value: Any, scale: float = 1.0, digits: int = 2) -> str:
 
 def format_metrics(metrics: dict[str, Any]) -> str:
     """metrics.json as aligned plain-text tables: trajectory errors per stage, image scores per
-    split (with the blurred input's as the floor), time and memory per stage, warnings."""
+    split (with the blurred input's as the floor), the no-reference means of real captures, time and
+    memory per stage, warnings."""
 
     lines = ["trajectory (after rigid alignment)",
              f"  {'stage':8s} {'ATE mm':>9s} {'RPE mm':>9s} {'RPE deg':>9s} {'frames':>7s}  dropped"]
