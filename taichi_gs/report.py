@@ -19,6 +19,8 @@ from .noreference_report import no_reference_metrics
 from .pipeline import STAGES, iter_stage_records, open_run_sequence
 from .plots import colour_map, colour_scale, image_grid, line_plot, trajectory_plot
 
+SHARP_TRUTH = "sharp images"  # metrics.json images.ground_truth when the sequence has sharp ground truth
+
 GRID_VIEWS = 4
 GRID_MIN_WIDTH = 240  # pixels per grid tile at least
 IMAGE_NULL_REASONS = {
@@ -122,7 +124,8 @@ def format_metrics(metrics: dict[str, Any]) -> str:
         lines += _split_table(f"images (stage 3 renders vs {images['ground_truth']})", images, [
             ("PSNR dB", "psnr_db", 1, 2), ("SSIM", "ssim", 1, 3), ("input PSNR", "blurred_input_psnr_db", 1, 2),
             ("input SSIM", "blurred_input_ssim", 1, 3), ("inv-depth RMSE", "inverse_depth_rmse", 1, 4)])
-    lines += _no_reference_lines(metrics.get("no_reference"))
+    if not images or images["ground_truth"] != SHARP_TRUTH:  # with sharp ground truth, its scores say more
+        lines += _no_reference_lines(metrics.get("no_reference"))
     if metrics.get("stages"):
         lines += ["", f"stages (arch {metrics.get('arch', 'none')})", f"  {'stage':8s} {'seconds':>9s} {'peak MB':>9s}"]
         for stage, s in metrics["stages"].items():
@@ -192,7 +195,7 @@ def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
     split = json.loads(split_path.read_text())
     has_sharp = sequence.sharp_paths is not None
     result: dict[str, Any] = {"lpips": "unavailable (no LPIPS network weights on this machine)",
-                              "ground_truth": "sharp images" if has_sharp else "none: only depth is scored"}
+                              "ground_truth": SHARP_TRUTH if has_sharp else "none: only depth is scored"}
     grid_rows, grid_titles = [], []
     for group in ("test", "train"):
         scores: dict[str, list[float]] = {}

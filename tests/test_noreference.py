@@ -150,6 +150,8 @@ def test_protocol_on_a_run_whose_renders_are_the_truth(tmp_path):
     printed = format_metrics({"trajectory": {}, "no_reference": metrics})
     assert f"{held['reblur_psnr_db']:.2f}" in printed and f"{held['warped_neighbour_psnr_db']:.2f}" in printed
     assert f"re-blurred render {held['reblur_on_warp_mask_psnr_db']:.2f}" in printed
+    synthetic = {"trajectory": {}, "no_reference": metrics, "images": {"ground_truth": "sharp images"}}
+    assert "no-reference" not in format_metrics(synthetic)  # sharp ground truth scores the renders instead
     ceiling = []
     for i in test:  # the held-out frame over the mean of its nearest training frames, before and after
         near = [j for j in (max((t for t in train if t < i), default=None), min((t for t in train if t > i), default=None))
