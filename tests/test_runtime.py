@@ -96,3 +96,19 @@ def test_cli_vulkan_without_a_driver_exits_2() -> None:
                             capture_output=True, text=True, env=env)
     assert result.returncode == 2 and "no Vulkan device" in result.stderr, result.stderr[-2000:]
     assert "arch obtained" not in result.stdout
+
+
+@pytest.mark.parametrize("setting", [None, "3"])
+def test_the_cpu_backend_runs_two_threads_per_core_unless_told(setting) -> None:
+    """[ours] `info` reports the thread count obtained: two per core this process may use, or what
+    TI_CPU_MAX_NUM_THREADS says."""
+    env = {k: v for k, v in os.environ.items() if k not in (runtime.ARCH_ENV, runtime.CPU_THREADS_ENV)}
+    if setting is not None:
+        env[runtime.CPU_THREADS_ENV] = setting
+    result = subprocess.run([sys.executable, "-m", "taichi_gs.cli", "--arch", "cpu", "info"],
+                            capture_output=True, text=True, env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    threads = next(line.split()[-1] for line in result.stdout.splitlines() if line.startswith("cpu threads"))
+    assert int(threads) == (runtime.cpu_threads() if setting is None else int(setting))
+    if hasattr(os, "sched_getaffinity"):
+        assert runtime.cpu_threads() == runtime.CPU_THREADS_PER_CORE * len(os.sched_getaffinity(0))
