@@ -6,7 +6,8 @@ which stays high when ICP slides along a plane. For a transform T (camera a -> c
 
 - a fixed grid of pixels of frame a with reliable depth is moved by T and projected into frame b;
 - geometric residual: point-to-plane distance to frame b's surface at that pixel,
-  ``r_g = n_b . (T P_a - P_b)``, scaled by the depth sensor's noise ``sigma(z) = s0 + s2 z^2``;
+  ``r_g = n_b . (T P_a - P_b)``, scaled by the depth sensor's noise ``sigma(z) = s0 + s2 z^2`` and by
+  how much of it bilinear interpolation leaves where the point lands (:func:`interpolation_noise`);
 - photometric residual: grey value of a minus grey value of b at the warped pixel (both lightly
   smoothed, each minus its mean over the overlap so a global brightness change does not count),
   scaled by ``sigma_photo``; colour constrains motion along planes, where depth alone cannot;
@@ -29,6 +30,9 @@ import numpy as np
 from .geometry import backproject, project, transform
 from .icp import reliable_depth_mask
 from .stages.pose_losses import bilinear, bilinear_depth
+
+
+MEAN_BILINEAR_SQUARES = 4.0 / 9.0  # the mean of sum w^2 over uniform sub-pixel positions: (2/3)^2
 
 
 @dataclass(frozen=True)
@@ -164,13 +168,27 @@ def _direction(T: np.ndarray, source: FrameView, target: FrameView, K: np.ndarra
     Q, pixels, depth, normal = Q[valid], pixels[valid], depth[valid], normal[valid]
     rays = np.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1], np.ones(m)], axis=-1)
     r_geo = np.sum(normal * (Q - depth[:, None] * rays), axis=1)
-    sigma_geo = settings.depth_sigma_m + settings.depth_sigma_quadratic * depth**2
+    sigma_geo = (settings.depth_sigma_m + settings.depth_sigma_quadratic * depth**2) * interpolation_noise(pixels)
     geometric = _geman_mcclure(r_geo, sigma_geo)
     target_gray, _ = bilinear(target.gray, pixels)
     source_gray = source.grid_gray[valid]
     r_photo = (source_gray - source_gray.mean()) - (target_gray - target_gray.mean())
     photometric = _geman_mcclure(r_photo, settings.photo_sigma)
     return float(geometric.sum()), float(photometric.sum()), m, n
+
+
+def interpolation_noise(pixels: np.ndarray) -> np.ndarray:
+    """How the geometric residual's noise depends on where each point lands in the target frame, with
+    mean 1 over positions. The residual is one source depth sample minus a bilinear mix of four target
+    samples with weights w, so its variance is sigma^2 (1 + sum w^2): sum w^2 is 1 on a pixel, 1/4
+    between four and 4/9 on average. Scaling sigma by sqrt((1 + sum w^2) / (1 + 4/9)) keeps each point's
+    expected cost the same wherever it lands; with one scale for all, a candidate that lands between
+    pixels looked better than one that lands on them, and a still camera (every point on a pixel) worse
+    than a slightly wrong motion."""
+    a = pixels[:, 0] - np.floor(pixels[:, 0])
+    b = pixels[:, 1] - np.floor(pixels[:, 1])
+    squares = ((1.0 - a) ** 2 + a**2) * ((1.0 - b) ** 2 + b**2)
+    return np.sqrt((1.0 + squares) / (1.0 + MEAN_BILINEAR_SQUARES))
 
 
 def _geman_mcclure(r: np.ndarray, sigma) -> np.ndarray:
