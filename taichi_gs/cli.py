@@ -7,7 +7,8 @@ import errno
 import functools
 import platform
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Optional
@@ -282,6 +283,8 @@ CameraOption = Annotated[Optional[str], typer.Option("--camera", help="TUM camer
 EveryOption = Annotated[int, typer.Option("--every", min=1, help="Keep every N-th frame.")]
 FirstOption = Annotated[int, typer.Option("--first", min=0, help="Start at this frame of the sequence as read (counted from 0; TUM: after colour-depth association).")]
 CountOption = Annotated[int, typer.Option("--count", min=0, help="Keep this many frames (after --every; 0: to the end).")]
+ProfileOption = Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md: wall and "
+                                          "CPU seconds per stage and per kind of work (flow, ICP, renders, losses, ...).")]
 ScaleOption = Annotated[float, typer.Option("--scale", help="Read frames at S times their width and height (0.5: half).")]
 
 
@@ -307,10 +310,12 @@ def pose(
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
     first: FirstOption = 0, count: CountOption = 0,
+    profile: ProfileOption = False,
 ) -> None:
     """Stage 1: relative poses from optical flow and depth, refined by ICP, chained; fused point cloud."""
+    from . import pipeline
     from .io.lock import output_lock
-    from .pipeline import check_run_input, resolve_sections, run_stage, write_run_info
+    from .pipeline import check_run_input, resolve_sections, write_run_info
 
     _check_output_folder(folder, out)
     config = resolve_sections(preset.value, config_file, only=("pose",))["pose"]
@@ -319,10 +324,10 @@ def pose(
     sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
                            trust_depth_scale, first, count)
     _init_backend()
-    with output_lock(out):
+    with output_lock(out), _profiled(profile, out):
         check_run_input(out, sequence)
         write_run_info(out, sequence)
-        summary = run_stage("pose", sequence, out, config, progress_bar)
+        summary = pipeline.run_stage("pose", sequence, out, config, progress_bar)  # --profile wraps it
     console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
 
 
@@ -357,10 +362,12 @@ def refine(
     points: Annotated[Optional[Path], typer.Option(help="Fused point cloud PLY (default OUT/pose/points.ply).")] = None,
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
+    profile: ProfileOption = False,
 ) -> None:
     """Stage 2: refine poses, positions and opacities of fixed-scale Gaussians against the input depth."""
+    from . import pipeline
     from .io.lock import output_lock
-    from .pipeline import open_run_sequence, resolve_sections, resolve_stage, run_stage
+    from .pipeline import open_run_sequence, resolve_sections, resolve_stage
 
     sections = resolve_sections(preset.value, config_file, only=("pose", "refine"))
     config = resolve_stage("refine", sections, out)
@@ -369,8 +376,9 @@ def refine(
             raise InputError(given, "file not found", "give an existing TUM trajectory (--poses) or PLY (--points)")
     sequence = open_run_sequence(out)
     _init_backend()
-    with output_lock(out):
-        summary = run_stage("refine", sequence, out, config, progress_bar, poses=poses, points=points)
+    with output_lock(out), _profiled(profile, out):
+        summary = pipeline.run_stage("refine", sequence, out, config, progress_bar, poses=poses,
+                                     points=points)  # --profile wraps it
     console.print(f"stage 2 done: {summary}; results in {out / 'refine'}")
 
 
@@ -388,11 +396,9 @@ def reconstruct(
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
     first: FirstOption = 0, count: CountOption = 0,
-    profile: Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md: wall and "
-                                          "CPU seconds per stage and per kind of work (renders, losses, ...).")] = False,
+    profile: ProfileOption = False,
 ) -> None:
     """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
-    from . import profiling
     from .io.lock import output_lock
     from .pipeline import reconstruct as run_all
     from .pipeline import resolve_sections
@@ -408,14 +414,8 @@ def reconstruct(
         verb = "done" if stage.ran else "already done, skipped"
         console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
 
-    profiler = profiling.Profiler() if profile else None
-    if profiler is not None:
-        profiling.install(profiler)
-    with output_lock(out):
+    with output_lock(out), _profiled(profile, out):
         run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report)
-        if profiler is not None:
-            paths = profiling.write(profiler, out)
-            console.print(f"profile: {paths[1]}", highlight=False)
     console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 
@@ -494,17 +494,13 @@ def deblur(
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
     holdout: Annotated[Optional[str], typer.Option(metavar="N|none|sharpest", help="Hold out every N-th frame as a test view, 'none', or 'sharpest' (the sharpest of every N frames; for real data).")] = None,
-    profile: Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md (see reconstruct).")] = False,
+    profile: ProfileOption = False,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
-    from . import pipeline, profiling
+    from . import pipeline
     from .io.lock import output_lock
     from .pipeline import open_run_sequence, resolve_sections
     from .validation import validate_sections
-
-    profiler = profiling.Profiler() if profile else None
-    if profiler is not None:
-        profiling.install(profiler)
 
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
     changes: dict[str, int | str] = {} if k is None else {"k": k}
@@ -516,11 +512,24 @@ def deblur(
     validate_sections({"deblur": config})
     sequence = open_run_sequence(out)
     _init_backend()
-    with output_lock(out):
+    with output_lock(out), _profiled(profile, out):
         summary = pipeline.run_stage("deblur", sequence, out, config, progress_bar)  # --profile wraps it
-        if profiler is not None:
-            profiling.write(profiler, out)
     console.print(f"stage 3 done: {summary}; results in {out / 'deblur'}", highlight=False)
+
+
+@contextmanager
+def _profiled(profile: bool, out: Path) -> Iterator[None]:
+    """With ``profile``, time the enclosed stages' work and write OUT/profile.json and OUT/profile.md."""
+    if not profile:
+        yield
+        return
+    from . import profiling
+
+    profiler = profiling.Profiler()
+    profiling.install(profiler)
+    yield
+    paths = profiling.write(profiler, out)
+    console.print(f"profile: {paths[1]}", highlight=False)
 
 
 def _init_backend() -> None:

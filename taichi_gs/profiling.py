@@ -1,8 +1,9 @@
 """Where the time goes: wall and CPU seconds per stage and per kind of work inside it.
 
-:func:`install` wraps the functions that do the work (rasterizer forward and backward, losses, the
-k-view average or the warped views, Adam, densification, exposure gradients, divergence checks,
-checkpoints and output writing) with timers, so a run with ``taichi-gs reconstruct --profile``
+:func:`install` wraps the functions that do the work (stage 1's optical flow, flow solve, ICP, RGB-D
+odometry, verification and pose graph; the rasterizer forward and backward, losses, the k-view average
+or the warped views, Adam, densification, exposure gradients, divergence checks, checkpoints and output
+writing) with timers, so a run with ``taichi-gs reconstruct --profile``
 writes ``OUT/profile.json`` and ``OUT/profile.md`` (:func:`write`). Each timed section synchronises
 the device at its ends, and time is counted exclusively: a section nested in another (a render
 inside a test-view exposure fit) is taken out of its parent. Each section also carries its inclusive
@@ -182,9 +183,10 @@ def _wrap_forward(rasterizer_class: Any, profiler: Profiler) -> None:
 
 def install(profiler: Profiler) -> None:
     """Wrap the stages' work functions with ``profiler``'s timers (for the rest of the process)."""
-    from . import deblur_model, density, pipeline, refine_model
+    from . import deblur_model, density, flow, pipeline, refine_model
+    from .io import sequence
     from .kernels import affine, blur, losses, optim, splat, warp
-    from .stages import checkpoint, deblur, divergence, refine
+    from .stages import checkpoint, deblur, divergence, pose, refine
 
     profiler.sync = splat.sync
     _wrap_forward(splat.Rasterizer, profiler)
@@ -211,6 +213,15 @@ def install(profiler: Profiler) -> None:
         (deblur, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
         (refine, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
         (deblur, "_load_frames", "input frames (I/O)"),
+        (flow, "dis_flow", "optical flow (DIS)"), (pose, "dis_flow", "optical flow (DIS)"),
+        (pose, "_flow_solve", "flow solve (se(3))"),
+        (pose, "prepare_icp", "ICP"), (pose, "align", "ICP"),
+        (pose, "rgbd_odometry", "RGB-D odometry (Open3D)"),
+        (pose, "frame_view", "verification"), (pose, "verify", "verification"),
+        (pose, "flow_disagreement", "verification"),
+        (pose, "_information", "pose graph: information matrices"), (pose, "optimise", "pose graph: optimisation"),
+        (pose, "fuse_points", "fused point cloud"),
+        (sequence.Sequence, "color", "input frames (I/O)"), (sequence.Sequence, "depth", "input frames (I/O)"),
     ]:
         _wrap(owner, attribute, profiler, name)
     original_run_stage = pipeline.run_stage

@@ -202,3 +202,21 @@ def test_eval_prints_the_table_and_warnings(tiny_sequence, tmp_path):
     as_json = _cli("eval", str(run), "--json")  # a fresh process: nothing but the JSON object on stdout
     assert as_json.returncode == 0, as_json.stderr
     assert json.loads(as_json.stdout)["trajectory"]["pose"]["frames"] == len(sequence)
+
+
+def test_pose_and_refine_profiles_name_where_each_stage_spends_its_time(tiny_sequence, tmp_path):
+    out = tmp_path / "run"
+    config = tmp_path / "short.toml"
+    config.write_text("[refine]\niterations_per_frame = 2\n")
+    assert _cli("pose", str(tiny_sequence), "--out", str(out), "--profile").returncode == 0
+    pose = json.loads((out / "profile.json").read_text())["pose"]["sections"]
+    for name in ("optical flow (DIS)", "flow solve (se(3))", "ICP", "verification", "pose graph: optimisation",
+                 "fused point cloud", "input frames (I/O)"):
+        assert pose[name]["calls"] > 0 and pose[name]["wall_s"] > 0, name
+    assert pose["other host work"]["wall_s"] < 0.5 * sum(s["wall_s"] for s in pose.values())
+    result = _cli("refine", str(out), "--config", str(config), "--profile")
+    assert result.returncode == 0, result.stderr
+    assert "profile: " in result.stderr
+    refine = json.loads((out / "profile.json").read_text())
+    assert set(refine) == {"refine"} and refine["refine"]["sections"]["render backward"]["calls"] == 2 * 12
+    assert "## refine: " in (out / "profile.md").read_text()
