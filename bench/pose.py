@@ -11,6 +11,7 @@ Methods (each from identity at frame 0):
 - ours: the stage as shipped (verified candidates + robust pose graph)
 - ours no graph: the same run's verified pairs, chained (graph ablation, no extra cost)
 - ours no flow check: ours with candidates scored without their disagreement with the measured flow
+- ours dense verification: ours with four times the verification grid (12000 points a direction)
 - ours no verify: the flow -> ICP -> RGB-D odometry path behind the method's guards, no graph
 - method: the paper's path only (flow solve, then point-to-plane ICP), chained
 - cand:NAME: one candidate of ours' run (flow, icp, icp-prior, rgbd-icp, ...), chained (verification ablation)
@@ -51,6 +52,7 @@ OURS = {
     "ours no flow check": {"verify_flow_weight": 0.0},
     "ours flow weight 0.2": {"verify_flow_weight": 0.2},
     "ours light graph odometry": {"graph_rgbd_iterations": (10, 5, 3)},
+    "ours dense verification": {"verify_grid_points": 12000},
     "ours no verify": {"verify": False, "pose_graph": False},
     "method": METHOD_ONLY,
 }
