@@ -212,7 +212,6 @@ def install(profiler: Profiler) -> None:
         (checkpoint, "save", "checkpoints (I/O)"),
         (deblur, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
         (refine, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
-        (deblur, "_load_frames", "input frames (I/O)"),
         (flow, "dis_flow", "optical flow (DIS)"), (pose, "dis_flow", "optical flow (DIS)"),
         (pose, "_flow_solve", "flow solve (se(3))"),
         (pose, "prepare_icp", "ICP"), (pose, "align", "ICP"),
@@ -221,6 +220,7 @@ def install(profiler: Profiler) -> None:
         (pose, "flow_disagreement", "verification"),
         (pose, "_information", "pose graph: information matrices"), (pose, "optimise", "pose graph: optimisation"),
         (pose, "fuse_points", "fused point cloud"),
+        # frame reads in every stage, counted once each (not their callers, such as stage 3's _load_frames)
         (sequence.Sequence, "color", "input frames (I/O)"), (sequence.Sequence, "depth", "input frames (I/O)"),
     ]:
         _wrap(owner, attribute, profiler, name)
