@@ -214,6 +214,7 @@ def install(profiler: Profiler) -> None:
         (refine, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
         (flow, "dis_flow", "optical flow (DIS)"), (pose, "dis_flow", "optical flow (DIS)"),
         (pose, "_flow_solve", "flow solve (se(3))"),
+        (pose, "depth_cloud", "point clouds (Open3D; import on first use)"),
         (pose, "prepare_icp", "ICP"), (pose, "align", "ICP"),
         (pose, "rgbd_odometry", "RGB-D odometry (Open3D)"),
         (pose, "frame_view", "verification"), (pose, "verify", "verification"),
