@@ -94,7 +94,7 @@ def prepare_icp(
         raise ValueError(f"{len(voxel_sizes)} ICP voxel sizes but {len(iterations)} iteration counts")
     if len(source.points) < MIN_ICP_POINTS or len(target.points) < MIN_ICP_POINTS:
         return ICPLevels(None, distance_factor)  # nothing to align (a frame without depth)
-    scale = _voxel_scale(source, min(voxel_sizes), max_points)
+    scale = capped_voxel_scale(source, min(voxel_sizes), max_points)
     voxel_sizes = tuple(scale * v for v in voxel_sizes)
     finest = min(voxel_sizes)
     source, target = source.voxel_down_sample(finest), target.voxel_down_sample(finest)
@@ -129,7 +129,7 @@ VOXEL_GROWTH = 1.25  # the ICP point cap grows voxels by this factor per step
 _PROBE_STEP = 12  # the voxel search's first count, 1.25^12 ~ 15x coarser than the finest voxel (cheap)
 
 
-def _voxel_scale(cloud: o3d.geometry.PointCloud, voxel: float, max_points: int) -> float:
+def capped_voxel_scale(cloud: o3d.geometry.PointCloud, voxel: float, max_points: int) -> float:
     """Smallest factor 1.25^k by which ``voxel`` must grow to leave at most ``max_points`` points (1 if no cap).
 
     Voxel counts fall as voxels grow, and a fine voxel costs far more to count than a coarse one (173 ms
