@@ -186,12 +186,16 @@ def pair_errors_mm(poses: np.ndarray, gt: np.ndarray) -> np.ndarray:
 def ground_truth_check(name: str, sequence, result, ratio: float) -> list[str]:
     """One line per pair whose ground-truth relative pose scores above ``ratio`` x ours' verification score."""
     settings, K, gt = PoseConfig().verify_settings(), sequence.intrinsics.K(), sequence.gt_poses
-    lines = []
+
+    def view(i: int):
+        return frame_view(sequence.color(i), sequence.depth(i), K, settings)
+
+    lines, views_k = [], (None, view(0))
     for k, pair in enumerate(result.pairs):
-        views = [frame_view(sequence.color(i), sequence.depth(i), K, settings) for i in (k, k + 1)]
+        views_k = views_k[1], view(k + 1)  # each frame's view made once, two held at a time
         ours = np.array(pair["transform"])
         truth = invert(gt[k + 1]) @ gt[k]
-        truth_score, ours_score = verify(truth, *views, K, settings).score, verify(ours, *views, K, settings).score
+        truth_score, ours_score = verify(truth, *views_k, K, settings).score, verify(ours, *views_k, K, settings).score
         if truth_score > ratio * ours_score:
             error = 1000 * np.linalg.norm((ours @ invert(truth))[:3, 3])
             lines.append(f"- {name}, pair {k} ({sequence.names[k]} -> {sequence.names[k + 1]}): the ground truth scores "

@@ -125,7 +125,7 @@ def align(prepared: ICPLevels, init: np.ndarray) -> ICPResult:
     return ICPResult(transform, fitness, rmse)
 
 
-VOXEL_GROWTH = 1.25  # the ICP point cap grows voxels by this factor per step
+VOXEL_GROWTH = 1.25  # a point cap (ICP's, the pose graph's information clouds) grows voxels by this factor per step
 _PROBE_STEP = 12  # the voxel search's first count, 1.25^12 ~ 15x coarser than the finest voxel (cheap)
 
 
