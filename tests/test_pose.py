@@ -251,6 +251,24 @@ def test_each_frame_view_is_computed_once_for_pairs_and_graph(tmp_path, walk_seq
     assert len(computed) == len(walk_sequence) and all(len(f) == 1 for f in frames)  # once per frame
 
 
+def test_the_graph_pass_slides_the_frame_cache_once_from_where_the_pairs_left_it(tmp_path, monkeypatch):
+    sequence = SceneSequence(walk(12))
+    monkeypatch.setattr(pose_stage.FrameCache.__init__, "__defaults__", (6,))  # keep 6 frames
+    computed, informed = [], []
+    original_view, original_cloud = pose_stage.frame_view, pose_stage._information_cloud
+    monkeypatch.setattr(pose_stage, "frame_view",
+                        lambda color, *a, **k: computed.append(color) or original_view(color, *a, **k))
+    monkeypatch.setattr(pose_stage, "_information_cloud",
+                        lambda depth, *a, **k: informed.append(depth) or original_cloud(depth, *a, **k))
+    result = run_pose(sequence, tmp_path, PoseConfig())
+    counts = [sum(np.shares_memory(c, sequence.color(i)) for c in computed) for i in range(len(sequence))]
+    assert counts == [2] * 6 + [1] * 6  # frames 6-11 were still cached; frame by frame and gap by gap: 3 each
+    assert len(informed) == len(sequence)
+    kinds = [e["kind"] for e in result.edges]
+    assert kinds == sorted(kinds, key=["odometry", "skip", "loop"].index)  # the optimiser sees the old order
+    assert [e["source"] for e in result.edges if e["kind"] == "odometry"] == list(range(11))
+
+
 def test_graph_edges_take_their_own_odometry_iterations_and_pairs_stay_cached(tmp_path, walk_sequence, monkeypatch):
     run_pose(walk_sequence, tmp_path, PoseConfig())
     iterations = []

@@ -655,16 +655,19 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
     n = len(sequence)
     scores = [r.score for r in relatives if np.isfinite(r.score)]
     max_score = config.graph_max_score_ratio * float(np.median(scores)) if scores else config.verify_max_score
-    edges = []
-    for k, r in enumerate(relatives):
-        info = _information(frames, k, k + 1, r.transform, config)
-        edges.append(Edge(k, k + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0), "odometry",
-                          r.estimate, r.score, r.weak))
-    for k in config.graph_skips:
-        for i in range(n - int(k)):
-            edge = _graph_edge(frames, i, i + int(k), chained, K, config, "skip", max_score)
-            if edge is not None:
-                edges.append(edge)
+    odometry, skips = {}, {int(k): {} for k in config.graph_skips}
+    # one pass from the last frame down, so that the frame cache's window slides once and starts on the frames
+    # the pairs left in it (frame by frame and gap by gap, each frame's view was made three times)
+    for i in reversed(range(n - 1)):
+        r = relatives[i]
+        info = _information(frames, i, i + 1, r.transform, config)
+        odometry[i] = Edge(i, i + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0), "odometry",
+                           r.estimate, r.score, r.weak)
+        for k, found in skips.items():
+            if i + k < n:
+                found[i] = _graph_edge(frames, i, i + k, chained, K, config, "skip", max_score)
+    edges = [odometry[i] for i in sorted(odometry)]
+    edges += [edge for found in skips.values() for _, edge in sorted(found.items()) if edge is not None]
     if config.loop_closures:
         for i, j in _loop_candidates(chained, config):
             edge = _graph_edge(frames, i, j, chained, K, config, "loop", max_score)
