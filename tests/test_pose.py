@@ -105,12 +105,12 @@ def test_rgbd_refinement_replaces_the_icp_estimate_when_it_stays_close():
 
 
 def test_icp_point_cap_coarsens_the_voxels_and_stays_accurate():
-    from taichi_gs.icp import align, capped_voxel_scale, depth_cloud, prepare_icp
+    from taichi_gs.icp import align, capped_voxel_down_sample, depth_cloud, prepare_icp
 
     _, depth_t, _, depth_t1, K = pair(MOTION, 320, 240)
     source, target = (depth_cloud(d, K, d > 0) for d in (depth_t, depth_t1))
-    assert capped_voxel_scale(source, 0.01, 0) == 1.0
-    scale = capped_voxel_scale(source, 0.01, 20000)  # 76k points at 1 cm
+    assert capped_voxel_down_sample(source, 0.01, 0)[1] == 1.0
+    scale = capped_voxel_down_sample(source, 0.01, 20000)[1]  # 76k points at 1 cm
     assert scale > 1.0 and len(source.voxel_down_sample(0.01 * scale).points) <= 20000
     assert len(source.voxel_down_sample(0.01 * scale / 1.25).points) > 20000
     result = align(prepare_icp(source, target, (0.04, 0.02, 0.01), (30, 20, 15), 2.0, 3.0, 30, max_points=20000), np.eye(4))
@@ -146,7 +146,7 @@ def _linear_voxel_scale(cloud, voxel: float, max_points: int) -> float:
 
 @pytest.mark.parametrize("max_points", [1, 40, 900, 20000, 60000, 10**7])
 def test_voxel_search_finds_the_same_voxel_as_growing_it_step_by_step(max_points):
-    from taichi_gs.icp import capped_voxel_scale, depth_cloud
+    from taichi_gs.icp import capped_voxel_down_sample, depth_cloud
 
     _, depth_t, _, depth_t1, K = pair(MOTION, 320, 240)
     rng = np.random.default_rng(0)
@@ -154,7 +154,7 @@ def test_voxel_search_finds_the_same_voxel_as_growing_it_step_by_step(max_points
     for depth in (depth_t, noisy):
         cloud = depth_cloud(depth, K, depth > 0)
         for voxel in (0.002, 0.01, 0.03):
-            assert capped_voxel_scale(cloud, voxel, max_points) == pytest.approx(_linear_voxel_scale(cloud, voxel, max_points))
+            assert capped_voxel_down_sample(cloud, voxel, max_points)[1] == pytest.approx(_linear_voxel_scale(cloud, voxel, max_points))
 
 
 def test_one_prepared_icp_pyramid_aligns_from_any_start_as_a_fresh_one():

@@ -25,8 +25,8 @@ import numpy as np
 from ..errors import InputError
 from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, rigid_flow, to_gray_u8
 from ..geometry import invert, se3_log
-from ..icp import (ICPLevels, align, capped_voxel_scale, depth_cloud, open3d, prepare_icp, reliable_depth_mask,
-                   rgbd_odometry)
+from ..icp import (ICPLevels, align, capped_voxel_down_sample, depth_cloud, open3d, prepare_icp,
+                   reliable_depth_mask, rgbd_odometry)
 from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import write_point_cloud
@@ -602,8 +602,7 @@ def _information_cloud(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> 
     """A frame's reliable depth as a cloud at the information matrices' voxel size (grown to keep at most
     ``graph_info_max_points`` points)."""
     cloud = depth_cloud(depth, K, config.reliable_depth(depth))
-    scale = capped_voxel_scale(cloud, config.graph_info_voxel_m, config.graph_info_max_points)
-    return cloud.voxel_down_sample(scale * config.graph_info_voxel_m)
+    return capped_voxel_down_sample(cloud, config.graph_info_voxel_m, config.graph_info_max_points)[0]
 
 
 def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
@@ -655,19 +654,19 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
     n = len(sequence)
     scores = [r.score for r in relatives if np.isfinite(r.score)]
     max_score = config.graph_max_score_ratio * float(np.median(scores)) if scores else config.verify_max_score
-    odometry, skips = {}, {int(k): {} for k in config.graph_skips}
     # one pass from the last frame down, so that the frame cache's window slides once and starts on the frames
-    # the pairs left in it (frame by frame and gap by gap, each frame's view was made three times)
+    # the pairs left in it (frame by frame and gap by gap, each frame's view was made three times); the edges
+    # are listed as before: odometry, then each gap's skip edges, by frame
+    odometry, skips = [], {int(k): [] for k in config.graph_skips}
     for i in reversed(range(n - 1)):
         r = relatives[i]
         info = _information(frames, i, i + 1, r.transform, config)
-        odometry[i] = Edge(i, i + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0), "odometry",
-                           r.estimate, r.score, r.weak)
+        odometry.append(Edge(i, i + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0),
+                             "odometry", r.estimate, r.score, r.weak))
         for k, found in skips.items():
             if i + k < n:
-                found[i] = _graph_edge(frames, i, i + k, chained, K, config, "skip", max_score)
-    edges = [odometry[i] for i in sorted(odometry)]
-    edges += [edge for found in skips.values() for _, edge in sorted(found.items()) if edge is not None]
+                found.append(_graph_edge(frames, i, i + k, chained, K, config, "skip", max_score))
+    edges = odometry[::-1] + [edge for found in skips.values() for edge in found[::-1] if edge is not None]
     if config.loop_closures:
         for i, j in _loop_candidates(chained, config):
             edge = _graph_edge(frames, i, j, chained, K, config, "loop", max_score)
