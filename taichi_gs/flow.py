@@ -11,6 +11,8 @@ file stem of frame k (``frame_0007.npy``). Optional backward flows (frame k+1 ->
 
 from __future__ import annotations
 
+import functools
+
 from pathlib import Path
 from typing import Protocol
 
@@ -79,22 +81,16 @@ def rigid_flow(depth: np.ndarray, K: np.ndarray, T: np.ndarray, fill_holes: bool
 
 
 class DISFlow:
-    """FlowProvider computing DIS flow on the grey colour frames of a sequence (two frames cached)."""
+    """FlowProvider computing DIS flow on the grey colour frames of a sequence (the frames used last cached;
+    safe to call from several threads)."""
 
-    def __init__(self, sequence, preset: str = "medium"):
+    def __init__(self, sequence, preset: str = "medium", keep: int = 8):
         self.sequence = sequence
         self.preset = preset
-        self._gray: dict[int, np.ndarray] = {}
+        self._gray_frame = functools.lru_cache(maxsize=keep)(lambda i: to_gray_u8(sequence.color(i)))
 
     def flow(self, i: int, j: int) -> np.ndarray:
         return dis_flow(self._gray_frame(i), self._gray_frame(j), self.preset)
-
-    def _gray_frame(self, i: int) -> np.ndarray:
-        if i not in self._gray:
-            if len(self._gray) >= 2:
-                self._gray.pop(max(self._gray, key=lambda k: abs(k - i)))
-            self._gray[i] = to_gray_u8(self.sequence.color(i))
-        return self._gray[i]
 
 
 class FileFlow:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -260,7 +261,7 @@ def test_the_graph_pass_slides_the_frame_cache_once_from_where_the_pairs_left_it
                         lambda color, *a, **k: computed.append(color) or original_view(color, *a, **k))
     monkeypatch.setattr(pose_stage, "_information_cloud",
                         lambda depth, *a, **k: informed.append(depth) or original_cloud(depth, *a, **k))
-    result = run_pose(sequence, tmp_path, PoseConfig())
+    result = run_pose(sequence, tmp_path, PoseConfig(threads=1))  # one thread: the frames in the serial order
     counts = [sum(np.shares_memory(c, sequence.color(i)) for c in computed) for i in range(len(sequence))]
     assert counts == [2] * 6 + [1] * 6  # frames 6-11 were still cached; frame by frame and gap by gap: 3 each
     assert len(informed) == len(sequence)
@@ -310,6 +311,43 @@ def test_exception_in_one_pair_is_recorded_and_the_run_continues(tmp_path, walk_
     assert result.pairs[1]["estimate"] == "constant-velocity"
     assert result.pairs[1]["reason"] == "FloatingPointError: overflow in test"
     assert [p["weak"] for p in result.pairs] == [False, True, False, False]
+
+
+def test_threads_give_the_serial_result_and_share_each_frame_once(tmp_path, walk_sequence, monkeypatch):
+    serial = run_pose(walk_sequence, tmp_path / "one", PoseConfig(threads=1))
+    computed, workers = [], set()
+    original_view, original_start = pose_stage.frame_view, pose_stage.start_pair
+    monkeypatch.setattr(pose_stage, "frame_view",
+                        lambda color, *a, **k: computed.append(color) or original_view(color, *a, **k))
+    monkeypatch.setattr(pose_stage, "start_pair",
+                        lambda *a, **k: workers.add(threading.current_thread().name) or original_start(*a, **k))
+    threaded = run_pose(walk_sequence, tmp_path / "three", PoseConfig(threads=3))
+    assert any(name.startswith("pose") for name in workers)  # the pairs' first parts ran on the pool
+    assert len(computed) == len(walk_sequence)  # each frame's view once, however many threads asked for it
+    for a, b in zip(serial.pairs, threaded.pairs, strict=True):
+        assert (a["estimate"], a["weak"], sorted(a["candidates"])) == (b["estimate"], b["weak"], sorted(b["candidates"]))
+        np.testing.assert_allclose(a["transform"], b["transform"], atol=1e-9)
+    assert [(e["source"], e["target"], e["kind"], e["pruned"]) for e in serial.edges] == \
+        [(e["source"], e["target"], e["kind"], e["pruned"]) for e in threaded.edges]
+    np.testing.assert_allclose(threaded.poses, serial.poses, atol=1e-9)
+
+
+def test_a_failure_on_a_worker_thread_ends_the_run_with_its_own_error(tmp_path, walk_sequence, monkeypatch):
+    def broken(*args, **kwargs):
+        raise KeyError("a programming error in a pair's first part")
+
+    monkeypatch.setattr(pose_stage, "start_pair", broken)
+    with pytest.raises(KeyError, match="programming error"):
+        run_pose(walk_sequence, tmp_path, PoseConfig(threads=2))
+    assert not list((tmp_path / "pose" / "pairs").glob("*.json"))
+
+
+def test_profiled_stage_1_runs_on_one_thread(monkeypatch):
+    from taichi_gs import profiling
+
+    assert pose_stage.stage_threads(PoseConfig(threads=3)) == 3
+    monkeypatch.setattr(profiling, "installed", lambda: True)
+    assert pose_stage.stage_threads(PoseConfig(threads=3)) == 1
 
 
 def test_stage_does_not_import_taichi():

@@ -27,6 +27,7 @@ from typing import Any
 import taichi as ti
 
 from ..errors import BackendError
+from ..machine import available_cores
 from . import devices
 
 ARCH_CHOICES = ("auto", "cpu", "cuda", "vulkan", "metal")
@@ -204,8 +205,7 @@ def _check_atomic_loops(device: str) -> None:
 
 def cpu_threads() -> int:
     """Threads for Taichi's CPU backend: :data:`CPU_THREADS_PER_CORE` per core this process may run on."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return CPU_THREADS_PER_CORE * cores
+    return CPU_THREADS_PER_CORE * available_cores()
 
 
 def current() -> Backend | None:

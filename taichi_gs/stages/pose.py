@@ -13,15 +13,20 @@ import dataclasses
 import functools
 import hashlib
 import json
+import threading
 import time
-from collections.abc import Callable
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
+from .. import profiling
 from ..errors import InputError
 from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, rigid_flow, to_gray_u8
 from ..geometry import invert, se3_log
@@ -31,6 +36,7 @@ from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
+from ..machine import available_cores
 from ..pose_graph import Edge, optimise
 from ..pose_verify import FlowCheck, FrameView, Verification, VerifySettings, flow_disagreement, frame_view, verify
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
@@ -144,6 +150,10 @@ class PoseConfig:
     loop_max_angle_deg: float = 30.0  # ... and viewing directions closer than this
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
+    # [ours] threads (0: one per core this process may run on). The next pairs' prior-free work (flow solve,
+    # ICP and RGB-D odometry from it, their verification) runs ahead while a pair finishes, and the graph's
+    # edges run side by side. Results do not depend on it; under --profile stage 1 runs on one thread.
+    threads: int = 0
 
     def solver_settings(self, with_all_terms: bool) -> SolverSettings:
         return SolverSettings(
@@ -177,7 +187,7 @@ class PoseConfig:
 _NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_rgbd_iterations",
                     "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m", "graph_info_max_points",
                     "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every", "loop_max_distance_m",
-                    "loop_max_angle_deg"}
+                    "loop_max_angle_deg", "threads"}
 
 # The method's path alone: flow solve, then point-to-plane ICP behind its guards, pairs chained
 # (as a --config file: [pose] verify = false, rgbd_refine = false, icp_from_prior = false, pose_graph = false,
@@ -203,7 +213,7 @@ class RelativePose:
     iterations: tuple[int, int] = (0, 0)
     icp_fitness: float = float("nan")
     icp_inlier_rmse_m: float = float("nan")
-    seconds: float = 0.0
+    seconds: float = 0.0  # wall time; in run_pose what the pair added to the stage's (its work ahead overlapped)
     score: float = float("nan")  # verification score of the chosen transform (lower is better)
     overlap: float = float("nan")
     candidates: dict = field(default_factory=dict)  # candidate name -> verification (as a dict)
@@ -267,6 +277,7 @@ def estimate_relative_pose(
     backward_flow: np.ndarray | None = None,
     prior: np.ndarray | None = None,
     views: tuple[FrameView, FrameView] | None = None,
+    ahead: PairStart | None = None,
 ) -> RelativePose:
     """Transform camera t -> t+1 minimising L_F, then L_F + l_I L_I + l_C L_C, then refined by ICP
     (and, with ``rgbd_refine``, by dense RGB-D odometry).
@@ -279,31 +290,35 @@ def estimate_relative_pose(
     see :func:`_retry_seeds`); a retry replaces it if it is not weak (with ``verify``: if it scores
     lower). ``prior`` (default identity) itself is returned, flagged weak, when nothing aligns the pair.
     ``views``: the two frames' :func:`taichi_gs.pose_verify.frame_view`, when already computed.
+    ``ahead``: the pair's :func:`start_pair` on these flows and views, when it ran ahead (the flows are then
+    not needed); the result is the same as without it.
     """
-    start = time.perf_counter()
+    started = time.perf_counter()
     prior = np.eye(4) if prior is None else prior
-    gray_t, gray_t1 = to_gray_u8(color_t), to_gray_u8(color_t1)
-    if flow is None:
-        flow = dis_flow(gray_t, gray_t1, config.flow_preset)
-        backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset)
+    frames = (color_t, depth_t, color_t1, depth_t1, K)
     if not config.verify:
         views = None
     elif views is None:
         settings = config.verify_settings()
         views = (frame_view(color_t, depth_t, K, settings), frame_view(color_t1, depth_t1, K, settings))
-    frames = (color_t, depth_t, color_t1, depth_t1, K)
-    first = _align(*frames, flow, backward_flow, prior, config, views)
+    if ahead is None:
+        if flow is None:
+            flow = dis_flow(to_gray_u8(color_t), to_gray_u8(color_t1), config.flow_preset)
+            backward_flow = dis_flow(to_gray_u8(color_t1), to_gray_u8(color_t), config.flow_preset)
+        ahead = start_pair(*frames, flow, backward_flow, config, views)
+    first = _finish_pair(ahead, *frames, prior, config, views)
     result = first
     for seed, guess in _retry_seeds(first, prior, config):
-        forward, backward = seeded_flows(gray_t, gray_t1, depth_t, depth_t1, K, guess, config.flow_preset)
-        retry = _align(*frames, forward, backward, prior, config, views)
+        forward, backward = seeded_flows(to_gray_u8(color_t), to_gray_u8(color_t1), depth_t, depth_t1, K, guess,
+                                         config.flow_preset)
+        retry = _finish_pair(start_pair(*frames, forward, backward, config, views), *frames, prior, config, views)
         better = retry.score < result.score if config.verify else not retry.weak
         if better:
             retry.flow_seed, retry.reason = seed, f"unseeded flow failed: {first.reason}"
             result = retry
         if not result.weak:
             break
-    result.seconds = time.perf_counter() - start
+    result.seconds = ahead.seconds + time.perf_counter() - started
     return result
 
 
@@ -327,30 +342,83 @@ def seeded_flows(gray_t: np.ndarray, gray_t1: np.ndarray, depth_t: np.ndarray, d
     return forward, backward
 
 
-def _align(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
-           flow: np.ndarray, backward_flow: np.ndarray | None, prior: np.ndarray, config: PoseConfig,
-           views: tuple[FrameView, FrameView] | None = None) -> RelativePose:
-    """One attempt with the given flows: the two solver phases from identity, then ICP and either the
-    verification of every candidate (``views`` given) or the method's guards."""
-    start = time.perf_counter()
+@dataclass
+class Candidate:
+    """One candidate transform camera t -> t+1 and, for ICP candidates, ICP's own fit."""
+
+    transform: np.ndarray
+    icp_fitness: float = float("nan")
+    icp_inlier_rmse_m: float = float("nan")
+
+
+@dataclass
+class PairStart:
+    """The part of one attempt at a pair that does not depend on its prior (the pair before it), so that it
+    can run ahead while that pair finishes: the flow samples and the flow solve; when verifying, also ICP
+    from the flow solve, RGB-D odometry from that, and the verification scores of these candidates."""
+
+    samples: PairSamples
+    flow_T: np.ndarray | None
+    iterations: tuple[int, int]
+    reason: str  # why there is no flow solve, if there is none
+    source_mask: np.ndarray
+    levels: ICPLevels | None = None  # the ICP pyramid of the two frames (with ``use_icp``, when verifying)
+    candidates: dict[str, Candidate] = field(default_factory=dict)
+    odometry_runs: list[tuple[np.ndarray, np.ndarray | None]] = field(default_factory=list)  # see _run_once
+    scores: dict[str, Verification] = field(default_factory=dict)
+    flow_check: FlowCheck | None = None
+    seconds: float = 0.0
+
+
+def start_pair(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
+               flow: np.ndarray, backward_flow: np.ndarray | None, config: PoseConfig,
+               views: tuple[FrameView, FrameView] | None) -> PairStart:
+    """One attempt's prior-free part with the given flows (``views``: the frames' views when verifying, else None)."""
+    started = time.perf_counter()
     source_mask = config.reliable_depth(depth_t)
     samples = sample_pair(color_t, depth_t, color_t1, depth_t1, K, flow, backward_flow, source_mask, config)
     flow_T, iterations, reason = _flow_solve(samples, config)
-    if views is None and flow_T is None:
-        return _fallback(prior, reason, start)
-    if views is None:
-        result = RelativePose(flow_T, FROM_FLOW, flow_transform=flow_T, points=len(samples.points), iterations=iterations)
+    ahead = PairStart(samples, flow_T, iterations, reason, source_mask)
+    if views is not None:
+        if config.verify_flow_weight > 0:
+            ahead.flow_check = _flow_check(flow, backward_flow)
         if config.use_icp:
-            _refine_with_icp(result, depth_t, depth_t1, K, source_mask, config)
+            target_mask = config.reliable_depth(depth_t1)
+            ahead.levels = _prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config)
+        if flow_T is not None:
+            ahead.candidates[FROM_FLOW] = Candidate(flow_T)
+            if ahead.levels is not None:
+                _add_icp(ahead.candidates, FROM_ICP, ahead.levels, flow_T)
+        if config.rgbd_refine and FROM_ICP in ahead.candidates:
+            _add_odometry(ahead.candidates, FROM_ICP, ahead.odometry_runs, color_t, depth_t, color_t1, depth_t1, K, config)
+        ahead.scores = {name: _score(c.transform, views, K, config, ahead.flow_check)
+                        for name, c in ahead.candidates.items()}
+    ahead.seconds = time.perf_counter() - started
+    return ahead
+
+
+def _finish_pair(ahead: PairStart, color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray,
+                 K: np.ndarray, prior: np.ndarray, config: PoseConfig,
+                 views: tuple[FrameView, FrameView] | None) -> RelativePose:
+    """The rest of the attempt, which needs the prior: the prior's candidates and the verification of every
+    candidate (``views`` given), or else the method's ICP and odometry behind its guards."""
+    started = time.perf_counter()
+    flow_T, samples = ahead.flow_T, ahead.samples
+    if views is None and flow_T is None:
+        return _fallback(prior, ahead.reason, started)
+    if views is None:
+        result = RelativePose(flow_T, FROM_FLOW, flow_transform=flow_T, points=len(samples.points),
+                              iterations=ahead.iterations)
+        if config.use_icp:
+            _refine_with_icp(result, depth_t, depth_t1, K, ahead.source_mask, config)
         if config.rgbd_refine and result.estimate == FROM_ICP:
             _refine_with_rgbd(result, color_t, depth_t, color_t1, depth_t1, K, config)
     else:
-        check = _flow_check(flow, backward_flow) if config.verify_flow_weight > 0 else None
-        result = _choose(_candidates(color_t, depth_t, color_t1, depth_t1, K, source_mask, flow_T, prior, config),
-                         views, K, config, flow_check=check)
-        result.flow_transform, result.points, result.iterations = flow_T, len(samples.points), iterations
+        candidates = _candidates(ahead, color_t, depth_t, color_t1, depth_t1, K, prior, config)
+        result = _choose(candidates, views, K, config, flow_check=ahead.flow_check, known=ahead.scores)
+        result.flow_transform, result.points, result.iterations = flow_T, len(samples.points), ahead.iterations
         if flow_T is None:
-            result.reason = "; ".join(filter(None, [reason, result.reason]))
+            result.reason = "; ".join(filter(None, [ahead.reason, result.reason]))
     final = warp(result.transform, samples)
     if final.valid.sum() > 0:
         result.flow_residual_px = float(np.median(flow_residuals(final, samples).norms()[final.valid]))
@@ -373,46 +441,41 @@ def _flow_solve(samples: PairSamples, config: PoseConfig) -> tuple[np.ndarray | 
     return flow_T, (flow_only.iterations, full.iterations), ""
 
 
-@dataclass
-class Candidate:
-    """One candidate transform camera t -> t+1 and, for ICP candidates, ICP's own fit."""
-
-    transform: np.ndarray
-    icp_fitness: float = float("nan")
-    icp_inlier_rmse_m: float = float("nan")
-
-
-def _candidates(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
-                source_mask: np.ndarray, flow_T: np.ndarray | None, prior: np.ndarray, config: PoseConfig) -> dict[str, Candidate]:
+def _candidates(ahead: PairStart, color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray,
+                depth_t1: np.ndarray, K: np.ndarray, prior: np.ndarray, config: PoseConfig) -> dict[str, Candidate]:
     """[ours] Every candidate of a pair: the flow solve, the prior, ICP from each (``icp_from_prior``),
-    and RGB-D odometry from each ICP result (``rgbd_refine``). Names say what started what."""
-    candidates = {FROM_CONSTANT_VELOCITY: Candidate(np.array(prior, dtype=np.float64))}
-    starts = {}
-    if flow_T is not None:
-        candidates[FROM_FLOW] = Candidate(flow_T)
-        starts[FROM_ICP] = flow_T
-    if config.icp_from_prior or flow_T is None:
-        starts[f"{FROM_ICP}-prior"] = candidates[FROM_CONSTANT_VELOCITY].transform
-    if not config.use_icp:
-        starts = {}
-    if starts:
-        target_mask = config.reliable_depth(depth_t1)
-        levels = _prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config)
-        for name, init in starts.items():
-            icp = align(levels, init)
-            if np.all(np.isfinite(icp.transform)):
-                candidates[name] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
+    and RGB-D odometry from each ICP result (``rgbd_refine``); ``ahead`` holds those that did not need the
+    prior. Names say what started what; they are listed in that order (prior, flow, ICP, odometry)."""
+    found = {FROM_CONSTANT_VELOCITY: Candidate(np.array(prior, dtype=np.float64)), **ahead.candidates}
+    runs = list(ahead.odometry_runs)
+    if ahead.levels is not None and (config.icp_from_prior or ahead.flow_T is None):
+        _add_icp(found, f"{FROM_ICP}-prior", ahead.levels, found[FROM_CONSTANT_VELOCITY].transform)
+    starts = [n for n in found if n.startswith(FROM_ICP)] or [n for n in (FROM_FLOW,) if n in found]
     if config.rgbd_refine:
-        odometry = functools.partial(rgbd_odometry, color_t, depth_t, color_t1, depth_t1, K,
-                                     iterations=tuple(config.rgbd_iterations),
-                                     depth_diff_max=config.rgbd_depth_diff_max_m,
-                                     depth_range=(config.min_depth_m, config.max_depth_m))
-        runs: list[tuple[np.ndarray, np.ndarray | None]] = []
-        for name in [n for n in candidates if n.startswith(FROM_ICP)] or [n for n in (FROM_FLOW,) if n in candidates]:
-            refined = _run_once(runs, candidates[name].transform, odometry)
-            if refined is not None and np.all(np.isfinite(refined)):
-                candidates[f"{FROM_RGBD}-{name}"] = Candidate(refined)
-    return candidates
+        for name in starts:
+            if f"{FROM_RGBD}-{name}" not in found:
+                _add_odometry(found, name, runs, color_t, depth_t, color_t1, depth_t1, K, config)
+    order = [FROM_CONSTANT_VELOCITY, FROM_FLOW, FROM_ICP, f"{FROM_ICP}-prior"] + [f"{FROM_RGBD}-{n}" for n in starts]
+    return {name: found[name] for name in order if name in found}
+
+
+def _add_icp(candidates: dict[str, Candidate], name: str, levels: ICPLevels, init: np.ndarray) -> None:
+    """Point-to-plane ICP from ``init`` as the candidate ``name``, if it stays finite."""
+    icp = align(levels, init)
+    if np.all(np.isfinite(icp.transform)):
+        candidates[name] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
+
+
+def _add_odometry(candidates: dict[str, Candidate], name: str, runs: list[tuple[np.ndarray, np.ndarray | None]],
+                  color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray,
+                  K: np.ndarray, config: PoseConfig) -> None:
+    """RGB-D odometry from the candidate ``name`` as ``rgbd-<name>``, if it succeeds (see :func:`_run_once`)."""
+    odometry = functools.partial(rgbd_odometry, color_t, depth_t, color_t1, depth_t1, K,
+                                 iterations=tuple(config.rgbd_iterations), depth_diff_max=config.rgbd_depth_diff_max_m,
+                                 depth_range=(config.min_depth_m, config.max_depth_m))
+    refined = _run_once(runs, candidates[name].transform, odometry)
+    if refined is not None and np.all(np.isfinite(refined)):
+        candidates[f"{FROM_RGBD}-{name}"] = Candidate(refined)
 
 
 def _run_once(runs: list[tuple[np.ndarray, np.ndarray | None]], start: np.ndarray,
@@ -435,20 +498,29 @@ def _flow_check(forward: np.ndarray, backward: np.ndarray | None) -> FlowCheck:
     return FlowCheck(forward, trusted)
 
 
+def _score(transform: np.ndarray, views: tuple[FrameView, FrameView], K: np.ndarray, config: PoseConfig,
+           flow_check: FlowCheck | None) -> Verification:
+    """A candidate's verification; with ``flow_check`` its score also carries the candidate's disagreement
+    with the measured flow (``verify_flow_weight``)."""
+    found = verify(transform, *views, K, config.verify_settings())
+    if flow_check is None:
+        return found
+    width = views[0].depth.shape[1]
+    scale, stride = config.verify_flow_scale_px * width / 320.0, max(1, width // 160)
+    cost = flow_disagreement(transform, views[0].depth, K, flow_check, scale, stride)
+    return dataclasses.replace(found, score=found.score + config.verify_flow_weight * cost, flow=cost)
+
+
 def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView], K: np.ndarray,
             config: PoseConfig, preference: tuple[str, ...] | None = None,
-            flow_check: FlowCheck | None = None) -> RelativePose:
+            flow_check: FlowCheck | None = None, known: dict[str, Verification] | None = None) -> RelativePose:
     """The candidate with the lowest verification score (near-ties, within ``verify_margin`` of it, go to
     the earliest in ``verify_preference``); weak if its score or overlap is poor. With ``flow_check`` each
-    score also carries the candidate's disagreement with the measured flow (``verify_flow_weight``)."""
-    settings = config.verify_settings()
-    scores: dict[str, Verification] = {name: verify(c.transform, *views, K, settings) for name, c in candidates.items()}
-    if flow_check is not None:
-        width = views[0].depth.shape[1]
-        scale, stride = config.verify_flow_scale_px * width / 320.0, max(1, width // 160)
-        for name, v in scores.items():
-            cost = flow_disagreement(candidates[name].transform, views[0].depth, K, flow_check, scale, stride)
-            scores[name] = dataclasses.replace(v, score=v.score + config.verify_flow_weight * cost, flow=cost)
+    score also carries the candidate's disagreement with the measured flow (``verify_flow_weight``).
+    ``known``: scores already computed (the same way) for some of the candidates."""
+    known = known or {}
+    scores = {name: known[name] if name in known else _score(c.transform, views, K, config, flow_check)
+              for name, c in candidates.items()}
     name = min(scores, key=lambda n: scores[n].score)
     if np.isfinite(scores[name].score):
         tie = scores[name].score * (1.0 + config.verify_margin)
@@ -576,18 +648,43 @@ def flow_provider(sequence, config: PoseConfig) -> FlowProvider:
 class FrameCache:
     """A sequence's frames and what pairs and the pose graph derive from them (verification views,
     information clouds), each read or computed once while among the ``keep`` frames used last: pairs
-    and graph edges visit frames in windows."""
+    and graph edges visit frames in windows. Safe to share between threads."""
 
     def __init__(self, sequence, K: np.ndarray, config: PoseConfig, keep: int = 16):
         settings = config.verify_settings()
-        self.color: Callable[[int], np.ndarray] = functools.lru_cache(maxsize=keep)(
-            lambda i: _read_only(sequence.color(i)))
-        self.depth: Callable[[int], np.ndarray] = functools.lru_cache(maxsize=keep)(
-            lambda i: _read_only(sequence.depth(i)))
-        self.view: Callable[[int], FrameView] = functools.lru_cache(maxsize=keep)(
-            lambda i: frame_view(self.color(i), self.depth(i), K, settings))
-        self.info_cloud: Callable[[int], o3d.geometry.PointCloud] = functools.lru_cache(maxsize=keep)(
-            lambda i: _information_cloud(self.depth(i), K, config))
+        self.color = _Recent(lambda i: _read_only(sequence.color(i)), keep)
+        self.depth = _Recent(lambda i: _read_only(sequence.depth(i)), keep)
+        self.view = _Recent(lambda i: frame_view(self.color(i), self.depth(i), K, settings), keep)
+        self.info_cloud = _Recent(lambda i: _information_cloud(self.depth(i), K, config), keep)
+
+
+class _Recent:
+    """``compute(key)`` for the ``keep`` keys used last, each computed once even when several threads ask for
+    it at the same time (the later ones wait for the first)."""
+
+    def __init__(self, compute: Callable[[int], Any], keep: int):
+        self.compute, self.keep = compute, keep
+        self.results: OrderedDict[int, Future] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def __call__(self, key: int) -> Any:
+        with self.lock:
+            result = self.results.get(key)
+            mine = result is None
+            if mine:
+                result = self.results[key] = Future()
+            self.results.move_to_end(key)
+            while len(self.results) > self.keep:
+                self.results.popitem(last=False)
+        if mine:
+            try:
+                result.set_result(self.compute(key))
+            except BaseException as error:
+                result.set_exception(error)
+                with self.lock:
+                    if self.results.get(key) is result:
+                        del self.results[key]  # not cached: the next call tries again
+        return result.result()
 
 
 def _read_only(image: np.ndarray) -> np.ndarray:
@@ -618,23 +715,32 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     K = sequence.intrinsics.K()
     key = config.pair_key()
     frames = FrameCache(sequence, K, config)
+    cached = [_load_pair(pair_dir / f"{k:06d}.json", key) for k in range(n - 1)]
     relatives: list[RelativePose] = []
-    for k in range(n - 1):
-        relative = _load_pair(pair_dir / f"{k:06d}.json", key)
-        if relative is None:
-            prior = relatives[-1].transform if relatives else np.eye(4)
-            relative = _estimate_pair(frames, provider, k, K, config, prior)
-            write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
-        relatives.append(relative)
-        if progress is not None:
-            progress(k + 1, n - 1)
+    threads = stage_threads(config)
+    with _workers(threads) as pool:
+        # the workers start the next pairs (two each) while this thread finishes one
+        started = _run_ahead(pool, [k for k, r in enumerate(cached) if r is None],
+                             functools.partial(_start_pair_of, frames, provider, K, config),
+                             ahead=2 * threads if threads > 1 else 0)
+        last = time.perf_counter()
+        for k, relative in enumerate(cached):
+            if relative is None:
+                prior = relatives[-1].transform if relatives else np.eye(4)
+                relative = _estimate_pair(frames, k, K, config, prior, next(started))
+                relative.seconds = time.perf_counter() - last  # the wall time it added, its work ahead overlapped
+                write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
+            relatives.append(relative)
+            if progress is not None:
+                progress(k + 1, n - 1)
+            last = time.perf_counter()
 
-    poses = chain_poses([r.transform for r in relatives])
-    pairs = [_pair_record(k, sequence.names, r) for k, r in enumerate(relatives)]
-    edges: list[Edge] = []
-    graph_start = time.perf_counter()
-    if config.pose_graph:
-        poses, edges = refine_with_graph(sequence, relatives, poses, config, frames)
+        poses = chain_poses([r.transform for r in relatives])
+        pairs = [_pair_record(k, sequence.names, r) for k, r in enumerate(relatives)]
+        edges: list[Edge] = []
+        graph_start = time.perf_counter()
+        if config.pose_graph:
+            poses, edges = refine_with_graph(sequence, relatives, poses, config, frames, pool)
     result = PoseResult(poses, pairs, edges=[_edge_record(e) for e in edges],
                         graph_seconds=time.perf_counter() - graph_start)
     paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
@@ -647,31 +753,37 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
 
 
 def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray, config: PoseConfig,
-                      frames: FrameCache) -> tuple[np.ndarray, list[Edge]]:
+                      frames: FrameCache, pool: Executor | None = None) -> tuple[np.ndarray, list[Edge]]:
     """[ours] Poses from a robust pose graph over the pairs, skip edges and loop closures (see PoseConfig);
-    ``frames``: the run's per-frame cache, shared with the pairs."""
+    ``frames``: the run's per-frame cache, shared with the pairs; ``pool``: where the edges run (side by
+    side on a thread pool; default: one after another)."""
     K = sequence.intrinsics.K()
     n = len(sequence)
     scores = [r.score for r in relatives if np.isfinite(r.score)]
     max_score = config.graph_max_score_ratio * float(np.median(scores)) if scores else config.verify_max_score
+    skips = [int(k) for k in config.graph_skips]
+
+    def frame_edges(i: int) -> tuple[Edge, list[Edge | None]]:
+        r = relatives[i]
+        info = _information(frames, i, i + 1, r.transform, config)
+        odometry = Edge(i, i + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0),
+                        "odometry", r.estimate, r.score, r.weak)
+        return odometry, [_graph_edge(frames, i, i + k, chained, K, config, "skip", max_score) if i + k < n else None
+                          for k in skips]
+
+    def loop_edge(pair: tuple[int, int]) -> Edge | None:
+        return _graph_edge(frames, *pair, chained, K, config, "loop", max_score)
+
     # one pass from the last frame down, so that the frame cache's window slides once and starts on the frames
     # the pairs left in it (frame by frame and gap by gap, each frame's view was made three times); the edges
     # are listed as before: odometry, then each gap's skip edges, by frame
-    odometry, skips = [], {int(k): [] for k in config.graph_skips}
-    for i in reversed(range(n - 1)):
-        r = relatives[i]
-        info = _information(frames, i, i + 1, r.transform, config)
-        odometry.append(Edge(i, i + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0),
-                             "odometry", r.estimate, r.score, r.weak))
-        for k, found in skips.items():
-            if i + k < n:
-                found.append(_graph_edge(frames, i, i + k, chained, K, config, "skip", max_score))
-    edges = odometry[::-1] + [edge for found in skips.values() for edge in found[::-1] if edge is not None]
+    pool = pool or _Inline()
+    by_frame = list(pool.map(frame_edges, reversed(range(n - 1))))[::-1]
+    edges = [odometry for odometry, _ in by_frame]
+    for g in range(len(skips)):
+        edges += [found[g] for _, found in by_frame if found[g] is not None]
     if config.loop_closures:
-        for i, j in _loop_candidates(chained, config):
-            edge = _graph_edge(frames, i, j, chained, K, config, "loop", max_score)
-            if edge is not None:
-                edges.append(edge)
+        edges += [e for e in pool.map(loop_edge, _loop_candidates(chained, config)) if e is not None]
     return optimise(chained, edges), edges
 
 
@@ -737,19 +849,67 @@ def _edge_record(edge: Edge) -> dict:
             "score": _finite_or_none(edge.score), "weak": edge.weak, "weight": round(edge.weight, 5), "pruned": edge.pruned}
 
 
-def _estimate_pair(frames: FrameCache, provider: FlowProvider, k: int, K: np.ndarray, config: PoseConfig,
-                   prior: np.ndarray) -> RelativePose:
-    """One pair; numerical trouble (a singular system, an overflow) makes it a weak constant-velocity
-    pair, recorded with its reason. Input and programming errors are not caught: they end the run."""
+def _start_pair_of(frames: FrameCache, provider: FlowProvider, K: np.ndarray, config: PoseConfig, k: int) -> PairStart:
+    """Pair k's :func:`start_pair` on the provider's flows (run ahead, on a worker thread when there are several)."""
+    views = (frames.view(k), frames.view(k + 1)) if config.verify else None
+    return start_pair(frames.color(k), frames.depth(k), frames.color(k + 1), frames.depth(k + 1), K,
+                      provider.flow(k, k + 1), provider.flow(k + 1, k), config, views)
+
+
+def _estimate_pair(frames: FrameCache, k: int, K: np.ndarray, config: PoseConfig, prior: np.ndarray,
+                   started: Future) -> RelativePose:
+    """Pair k from its started part (a future of :func:`_start_pair_of`); numerical trouble (a singular
+    system, an overflow) makes it a weak constant-velocity pair, recorded with its reason. Input and
+    programming errors are not caught: they end the run."""
     start = time.perf_counter()
     try:
-        forward = provider.flow(k, k + 1)
-        backward = provider.flow(k + 1, k)
         return estimate_relative_pose(frames.color(k), frames.depth(k), frames.color(k + 1), frames.depth(k + 1),
-                                      K, forward, config, backward_flow=backward, prior=prior,
+                                      K, config=config, prior=prior, ahead=started.result(),
                                       views=(frames.view(k), frames.view(k + 1)) if config.verify else None)
     except NUMERICAL_FAILURES as err:  # one degenerate pair must not end the run; the reason is recorded
         return _fallback(prior, f"{type(err).__name__}: {err}", start)
+
+
+def stage_threads(config: PoseConfig) -> int:
+    """Threads stage 1 runs on: ``config.threads``, 0 meaning one per available core; one under --profile, whose
+    sections are timed on one thread (the results are the same)."""
+    if profiling.installed():
+        return 1
+    return config.threads or available_cores()
+
+
+class _Inline(Executor):
+    """An executor that runs each task in the caller's thread when it is submitted."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except Exception as error:  # re-raised by future.result(), where a pool would raise it
+            future.set_exception(error)
+        return future
+
+
+@contextmanager
+def _workers(threads: int) -> Iterator[Executor]:
+    """A pool of ``threads`` worker threads, or the caller's thread alone for one; waiting tasks are cancelled
+    on the way out."""
+    pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="pose") if threads > 1 else _Inline()
+    try:
+        yield pool
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _run_ahead(pool: Executor, keys: list[int], task: Callable[[int], PairStart], ahead: int) -> Iterator[Future]:
+    """Futures of ``task(key)`` in the order of ``keys``; when one is taken, the tasks of the next ``ahead``
+    keys are submitted too, so that the pool runs ahead of the caller by that many keys at most."""
+    futures: dict[int, Future] = {}
+    for i, key in enumerate(keys):
+        for upcoming in keys[i:i + ahead + 1]:
+            if upcoming not in futures:
+                futures[upcoming] = pool.submit(task, upcoming)
+        yield futures.pop(key)
 
 
 def _load_pair(path: Path, key: str) -> RelativePose | None:
