@@ -150,9 +150,10 @@ class PoseConfig:
     loop_max_angle_deg: float = 30.0  # ... and viewing directions closer than this
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
-    # [ours] threads (0: one per core this process may run on). The next pairs' prior-free work (flow solve,
-    # ICP and RGB-D odometry from it, their verification) runs ahead while a pair finishes, and the graph's
-    # edges run side by side. Results do not depend on it; under --profile stage 1 runs on one thread.
+    # [ours] threads (0: one per core this process may run on, at most DEFAULT_MAX_THREADS). The next pairs'
+    # prior-free work (flow solve, ICP and RGB-D odometry from it, their verification) runs ahead while a pair
+    # finishes, and the graph's edges run side by side. Results do not depend on it; under --profile stage 1
+    # runs on one thread.
     threads: int = 0
 
     def solver_settings(self, with_all_terms: bool) -> SolverSettings:
@@ -870,12 +871,18 @@ def _estimate_pair(frames: FrameCache, k: int, K: np.ndarray, config: PoseConfig
         return _fallback(prior, f"{type(err).__name__}: {err}", start)
 
 
+# The most threads stage 1 takes by default: the pairs finish one after another on one thread, which bounds what
+# more workers can start ahead, and each Open3D call runs its own threads (measured on 2 cores only)
+DEFAULT_MAX_THREADS = 4
+
+
 def stage_threads(config: PoseConfig) -> int:
-    """Threads stage 1 runs on: ``config.threads``, 0 meaning one per available core; one under --profile, whose
-    sections are timed on one thread (the results are the same)."""
+    """Threads stage 1 runs on: ``config.threads``, 0 meaning one per available core up to
+    :data:`DEFAULT_MAX_THREADS`; one under --profile, whose sections are timed on one thread (the results are
+    the same)."""
     if profiling.installed():
         return 1
-    return config.threads or available_cores()
+    return config.threads or min(available_cores(), DEFAULT_MAX_THREADS)
 
 
 class _Inline(Executor):
