@@ -304,8 +304,9 @@ def estimate_relative_pose(
         views = (frame_view(color_t, depth_t, K, settings), frame_view(color_t1, depth_t1, K, settings))
     if ahead is None:
         if flow is None:
-            flow = dis_flow(to_gray_u8(color_t), to_gray_u8(color_t1), config.flow_preset)
-            backward_flow = dis_flow(to_gray_u8(color_t1), to_gray_u8(color_t), config.flow_preset)
+            gray_t, gray_t1 = to_gray_u8(color_t), to_gray_u8(color_t1)
+            flow = dis_flow(gray_t, gray_t1, config.flow_preset)
+            backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset)
         ahead = start_pair(*frames, flow, backward_flow, config, views)
     first = _finish_pair(ahead, *frames, prior, config, views)
     result = first
@@ -385,13 +386,15 @@ def start_pair(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, d
             ahead.flow_check = _flow_check(flow, backward_flow)
         if config.use_icp:
             target_mask = config.reliable_depth(depth_t1)
-            ahead.levels = _prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config)
+            ahead.levels = _prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask),
+                                        config)
         if flow_T is not None:
             ahead.candidates[FROM_FLOW] = Candidate(flow_T)
             if ahead.levels is not None:
                 _add_icp(ahead.candidates, FROM_ICP, ahead.levels, flow_T)
         if config.rgbd_refine and FROM_ICP in ahead.candidates:
-            _add_odometry(ahead.candidates, FROM_ICP, ahead.odometry_runs, color_t, depth_t, color_t1, depth_t1, K, config)
+            _add_odometry(ahead.candidates, FROM_ICP, ahead.odometry_runs, color_t, depth_t, color_t1, depth_t1, K,
+                          config)
         ahead.scores = {name: _score(c.transform, views, K, config, ahead.flow_check)
                         for name, c in ahead.candidates.items()}
     ahead.seconds = time.perf_counter() - started
