@@ -129,6 +129,8 @@ def info() -> None:
     import taichi
 
     backend = runtime.init(state.arch)
+    from .stages.pose import PoseConfig, stage_threads
+
     rows = {
         "taichi-gs": __version__,
         "python": platform.python_version(),
@@ -140,6 +142,7 @@ def info() -> None:
         "arch obtained": backend.arch,
         "device": backend.device,
         "cpu threads": str(backend.cpu_threads),
+        "stage 1 threads": str(stage_threads(PoseConfig())),
         "kernel cache": backend.cache_dir,
     }
     for key, value in rows.items():

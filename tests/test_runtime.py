@@ -13,6 +13,8 @@ import pytest
 
 from taichi_gs.errors import BackendError
 from taichi_gs.kernels import devices, runtime
+from taichi_gs.machine import available_cores
+from taichi_gs.stages.pose import DEFAULT_MAX_THREADS
 
 
 def vk(index: int, device_type: int, api_minor: int = 3, name: str = "dev") -> devices.VulkanDevice:
@@ -101,7 +103,7 @@ def test_cli_vulkan_without_a_driver_exits_2() -> None:
 @pytest.mark.parametrize("setting", [None, "3"])
 def test_the_cpu_backend_runs_two_threads_per_core_unless_told(setting) -> None:
     """[ours] `info` reports the thread count obtained: two per core this process may use, or what
-    TI_CPU_MAX_NUM_THREADS says."""
+    TI_CPU_MAX_NUM_THREADS says; and stage 1's threads, one per core up to a cap."""
     env = {k: v for k, v in os.environ.items() if k not in (runtime.ARCH_ENV, runtime.CPU_THREADS_ENV)}
     if setting is not None:
         env[runtime.CPU_THREADS_ENV] = setting
@@ -110,5 +112,6 @@ def test_the_cpu_backend_runs_two_threads_per_core_unless_told(setting) -> None:
     assert result.returncode == 0, result.stderr[-2000:]
     threads = next(line.split()[-1] for line in result.stdout.splitlines() if line.startswith("cpu threads"))
     assert int(threads) == (runtime.cpu_threads() if setting is None else int(setting))
-    if hasattr(os, "sched_getaffinity"):
-        assert runtime.cpu_threads() == runtime.CPU_THREADS_PER_CORE * len(os.sched_getaffinity(0))
+    pose_threads = next(line.split()[-1] for line in result.stdout.splitlines() if line.startswith("stage 1 threads"))
+    assert int(pose_threads) == min(available_cores(), DEFAULT_MAX_THREADS)  # Taichi's variable leaves it alone
+    assert runtime.cpu_threads() == runtime.CPU_THREADS_PER_CORE * available_cores()
