@@ -165,12 +165,16 @@ def test_without_a_terminal_pose_prints_progress_lines_and_logs_to_the_run_folde
     result = _cli("pose", str(tiny_sequence), "--out", str(out), "--arch", "cpu")
     assert result.returncode == 0, result.stderr
     assert result.stdout == ""
-    progress = re.findall(r"^stage 1: pose: (\d+)/11 \(\d+%\) elapsed \d:\d\d:\d\d eta \d:\d\d:\d\d", result.stderr, re.M)
-    assert progress and progress[-1] == "11"
+    # 11 pairs, the graph's 11 frames, 12 fused frames
+    progress = re.findall(r"^stage 1: pose: (\d+)/34 \(\d+%\) elapsed \d:\d\d:\d\d eta \d:\d\d:\d\d  step=(.+)$",
+                          result.stderr, re.M)
+    assert progress and progress[-1] == ("34", "fused cloud")
+    kinds = [kind for _, kind in progress]
+    assert kinds == sorted(kinds, key=["pairs", "graph", "fused cloud"].index)
     assert "stage 1 done" in result.stderr
     log = (out / "log.txt").read_text()
     assert "$ taichi-gs pose" in log.splitlines()[0]
-    assert "stage 1: pose: 11/11 (100%)" in log and "stage 1 done" in log
+    assert "stage 1: pose: 34/34 (100%)" in log and "stage 1 done" in log
 
     quiet = _cli("-q", "pose", str(tiny_sequence), "--out", str(out))
     assert quiet.returncode == 0, quiet.stderr

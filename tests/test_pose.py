@@ -205,8 +205,14 @@ def walk_sequence() -> SceneSequence:
 
 def test_run_pose_writes_outputs_that_match_ground_truth(tmp_path, walk_sequence):
     progress = []
-    result = run_pose(walk_sequence, tmp_path, PoseConfig(), progress=lambda done, total: progress.append((done, total)))
-    assert progress[-1] == (4, 4)
+    result = run_pose(walk_sequence, tmp_path, PoseConfig(), progress=lambda *step: progress.append(step))
+    total = 4 + 4 + 5  # pairs, the graph's frames, the fused frames
+    assert [done for done, _, _ in progress] == list(range(1, total + 1)) and {t for _, t, _ in progress} == {total}
+    assert [kind for _, _, kind in progress] == ["pairs"] * 4 + ["graph"] * 4 + ["fused cloud"] * 5
+    progress.clear()
+    run_pose(walk_sequence, tmp_path, PoseConfig(pose_graph=False), progress=lambda *step: progress.append(step))
+    assert [kind for _, _, kind in progress] == ["pairs"] * 4 + ["fused cloud"] * 5  # cached pairs count too
+    assert progress[-1][:2] == (9, 9) == (pose_stage.progress_steps(5, PoseConfig(pose_graph=False)),) * 2
     assert result.poses.shape == (5, 4, 4)
     np.testing.assert_allclose(result.poses[0], np.eye(4))
     gt = invert(walk_sequence.gt_poses[0]) @ walk_sequence.gt_poses

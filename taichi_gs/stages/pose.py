@@ -627,8 +627,10 @@ def chain_poses(relatives: list[np.ndarray]) -> np.ndarray:
     return np.stack(poses)
 
 
-def fuse_points(sequence, poses: np.ndarray, config: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
-    """World points and colours of all frames' reliable depth, voxel-downsampled to ``voxel_size_m``."""
+def fuse_points(sequence, poses: np.ndarray, config: PoseConfig,
+                on_frame: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World points and colours of all frames' reliable depth, voxel-downsampled to ``voxel_size_m``;
+    ``on_frame(done)`` after each frame."""
     K = sequence.intrinsics.K()
     fused = open3d().geometry.PointCloud()
     for i, pose in enumerate(poses):
@@ -637,6 +639,8 @@ def fuse_points(sequence, poses: np.ndarray, config: PoseConfig) -> tuple[np.nda
         cloud = depth_cloud(depth, K, mask, sequence.color(i)).transform(pose)
         fused += cloud.voxel_down_sample(config.voxel_size_m)
         fused = fused.voxel_down_sample(config.voxel_size_m)
+        if on_frame is not None:
+            on_frame(i + 1)
     return np.asarray(fused.points), np.asarray(fused.colors)
 
 
@@ -707,8 +711,10 @@ def _information_cloud(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> 
 
 
 def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
-             progress: Callable[[int, int], None] | None = None) -> PoseResult:
-    """Stage 1 over a whole sequence, resuming from cached pairs; writes OUT/pose/ (see module doc)."""
+             progress: Callable[[int, int, str], None] | None = None) -> PoseResult:
+    """Stage 1 over a whole sequence, resuming from cached pairs; writes OUT/pose/ (see module doc).
+    ``progress(done, total, step)`` counts the pairs, then the pose graph's frames, then the frames fused into
+    the cloud (``step``: "pairs", "graph", "fused cloud")."""
     n = len(sequence)
     if n < 2:
         raise InputError(getattr(sequence, "root", None), f"sequence has {n} frame(s)", "give at least two frames")
@@ -720,6 +726,11 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     key = config.pair_key()
     frames = FrameCache(sequence, K, config)
     cached = [_load_pair(pair_dir / f"{k:06d}.json", key) for k in range(n - 1)]
+    steps, graph_steps = progress_steps(n, config), n - 1 if config.pose_graph else 0
+
+    def progress_of(kind: str, offset: int) -> Callable[[int], None]:
+        return (lambda done: progress(offset + done, steps, kind)) if progress is not None else (lambda done: None)
+
     relatives: list[RelativePose] = []
     threads = stage_threads(config)
     with _workers(threads) as pool:
@@ -735,8 +746,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
                 relative.seconds = time.perf_counter() - last  # the wall time it added, its work ahead overlapped
                 write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
             relatives.append(relative)
-            if progress is not None:
-                progress(k + 1, n - 1)
+            progress_of("pairs", 0)(k + 1)
             last = time.perf_counter()
 
         poses = chain_poses([r.transform for r in relatives])
@@ -744,23 +754,25 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
         edges: list[Edge] = []
         graph_start = time.perf_counter()
         if config.pose_graph:
-            poses, edges = refine_with_graph(sequence, relatives, poses, config, frames, pool)
+            poses, edges = refine_with_graph(sequence, relatives, poses, config, frames, pool,
+                                             on_frame=progress_of("graph", n - 1))
     result = PoseResult(poses, pairs, edges=[_edge_record(e) for e in edges],
                         graph_seconds=time.perf_counter() - graph_start)
     paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
     write_tum(paths["trajectory"], np.asarray(sequence.timestamps), poses, header="taichi-gs stage 1, camera-to-world")
     write_text(paths["pairs"], jsonout.dumps({"summary": result.summary(), "pairs": pairs, "edges": result.edges}, indent=1) + "\n")
-    points, colors = fuse_points(sequence, poses, config)
+    points, colors = fuse_points(sequence, poses, config, on_frame=progress_of("fused cloud", n - 1 + graph_steps))
     write_point_cloud(paths["points"], points, colors)
     result.paths = paths
     return result
 
 
 def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray, config: PoseConfig,
-                      frames: FrameCache, pool: Executor | None = None) -> tuple[np.ndarray, list[Edge]]:
+                      frames: FrameCache, pool: Executor | None = None,
+                      on_frame: Callable[[int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
     """[ours] Poses from a robust pose graph over the pairs, skip edges and loop closures (see PoseConfig);
     ``frames``: the run's per-frame cache, shared with the pairs; ``pool``: where the edges run (side by
-    side on a thread pool; default: one after another)."""
+    side on a thread pool; default: one after another); ``on_frame(done)`` after each frame's edges."""
     K = sequence.intrinsics.K()
     n = len(sequence)
     scores = [r.score for r in relatives if np.isfinite(r.score)]
@@ -782,7 +794,12 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
     # the pairs left in it (frame by frame and gap by gap, each frame's view was made three times); the edges
     # are listed as before: odometry, then each gap's skip edges, by frame
     pool = pool or _Inline()
-    by_frame = list(pool.map(frame_edges, reversed(range(n - 1))))[::-1]
+    by_frame = []
+    for found in pool.map(frame_edges, reversed(range(n - 1))):
+        by_frame.append(found)
+        if on_frame is not None:
+            on_frame(len(by_frame))
+    by_frame.reverse()
     edges = [odometry for odometry, _ in by_frame]
     for g in range(len(skips)):
         edges += [found[g] for _, found in by_frame if found[g] is not None]
@@ -939,10 +956,16 @@ def _pair_record(k: int, names: list[str], r: RelativePose) -> dict:
     return record
 
 
+def progress_steps(frames: int, config: PoseConfig) -> int:
+    """Stage 1's progress steps: the pairs, the pose graph's frames (with ``pose_graph``), the fused frames."""
+    return (frames - 1) * (2 if config.pose_graph else 1) + frames
+
+
 def _run_stage(context: StageContext) -> StageRun:
     pairs = len(context.sequence) - 1
-    with context.progress(STAGE.title, pairs) as update:
-        result = run_pose(context.sequence, context.out, context.config, progress=lambda done, total: update(done, total))
+    with context.progress(STAGE.title, progress_steps(len(context.sequence), context.config)) as update:
+        result = run_pose(context.sequence, context.out, context.config,
+                          progress=lambda done, total, kind: update(done, total, step=kind))
     weak = sum(1 for p in result.pairs if p.get("weak"))
     return StageRun(f"{pairs} pairs, {weak} weak")
 
