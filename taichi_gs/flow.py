@@ -11,8 +11,7 @@ file stem of frame k (``frame_0007.npy``). Optional backward flows (frame k+1 ->
 
 from __future__ import annotations
 
-import functools
-
+from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
@@ -81,16 +80,15 @@ def rigid_flow(depth: np.ndarray, K: np.ndarray, T: np.ndarray, fill_holes: bool
 
 
 class DISFlow:
-    """FlowProvider computing DIS flow on the grey colour frames of a sequence (the frames used last cached;
-    safe to call from several threads)."""
+    """FlowProvider computing DIS flow on 8-bit grey frames, ``gray(i)`` for frame i (the caller caches them;
+    stage 1's frame cache does, for every thread)."""
 
-    def __init__(self, sequence, preset: str = "medium", keep: int = 8):
-        self.sequence = sequence
+    def __init__(self, gray: Callable[[int], np.ndarray], preset: str = "medium"):
+        self.gray = gray
         self.preset = preset
-        self._gray_frame = functools.lru_cache(maxsize=keep)(lambda i: to_gray_u8(sequence.color(i)))
 
     def flow(self, i: int, j: int) -> np.ndarray:
-        return dis_flow(self._gray_frame(i), self._gray_frame(j), self.preset)
+        return dis_flow(self.gray(i), self.gray(j), self.preset)
 
 
 class FileFlow:

@@ -128,7 +128,8 @@ class Profiler:
                  "Exclusive wall and CPU (user + sys) seconds per section; cores = CPU / wall; "
                  "incl.: with the sections nested in it (the renders of a test-view exposure fit). "
                  "Stage 1 (pose) runs on one thread while profiled, so that its sections do not overlap: "
-                 "without --profile it overlaps pairs and graph edges on one thread per core and takes less wall time.", ""]
+                 "without --profile it overlaps pairs and graph edges on one thread per core and takes less "
+                 "wall time.", ""]
         for stage, record in self.report().items():
             lines += [f"## {stage}: {record['wall_s']:.1f} s wall, {record['cpu_s']:.1f} CPU-s, "
                       f"{record['cores']:.2f} cores", "",

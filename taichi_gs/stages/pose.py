@@ -644,24 +644,25 @@ def fuse_points(sequence, poses: np.ndarray, config: PoseConfig,
     return np.asarray(fused.points), np.asarray(fused.colors)
 
 
-def flow_provider(sequence, config: PoseConfig) -> FlowProvider:
-    """Precomputed flows when ``flow_dir`` is set (checked now), else DIS."""
+def flow_provider(sequence, config: PoseConfig, frames: FrameCache) -> FlowProvider:
+    """Precomputed flows when ``flow_dir`` is set (checked now), else DIS on ``frames``' grey frames."""
     if config.flow_dir:
         provider = FileFlow(config.flow_dir, list(sequence.names))
         provider.check()
         return provider
-    return DISFlow(sequence, config.flow_preset)
+    return DISFlow(frames.gray, config.flow_preset)
 
 
 class FrameCache:
-    """A sequence's frames and what pairs and the pose graph derive from them (verification views,
-    information clouds), each read or computed once while among the ``keep`` frames used last: pairs
-    and graph edges visit frames in windows. Safe to share between threads."""
+    """A sequence's frames and what pairs and the pose graph derive from them (grey frames for optical flow,
+    verification views, information clouds), each read or computed once while among the ``keep`` frames used
+    last: pairs and graph edges visit frames in windows. Safe to share between threads."""
 
     def __init__(self, sequence, K: np.ndarray, config: PoseConfig, keep: int = 16):
         settings = config.verify_settings()
         self.color = _Recent(lambda i: _read_only(sequence.color(i)), keep)
         self.depth = _Recent(lambda i: _read_only(sequence.depth(i)), keep)
+        self.gray = _Recent(lambda i: _read_only(to_gray_u8(self.color(i))), keep)
         self.view = _Recent(lambda i: frame_view(self.color(i), self.depth(i), K, settings), keep)
         self.info_cloud = _Recent(lambda i: _information_cloud(self.depth(i), K, config), keep)
 
@@ -721,12 +722,12 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     pose_dir = Path(out_dir) / "pose"
     pair_dir = pose_dir / "pairs"
     pair_dir.mkdir(parents=True, exist_ok=True)
-    provider = flow_provider(sequence, config)
     K = sequence.intrinsics.K()
     key = config.pair_key()
     frames = FrameCache(sequence, K, config)
+    provider = flow_provider(sequence, config, frames)
     cached = [_load_pair(pair_dir / f"{k:06d}.json", key) for k in range(n - 1)]
-    steps, graph_steps = progress_steps(n, config), n - 1 if config.pose_graph else 0
+    steps = progress_steps(n, config)
 
     def progress_of(kind: str, offset: int) -> Callable[[int], None]:
         return (lambda done: progress(offset + done, steps, kind)) if progress is not None else (lambda done: None)
@@ -738,7 +739,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
         started = _run_ahead(pool, [k for k, r in enumerate(cached) if r is None],
                              functools.partial(_start_pair_of, frames, provider, K, config),
                              ahead=2 * threads if threads > 1 else 0)
-        last = time.perf_counter()
+        pairs_done, last = progress_of("pairs", 0), time.perf_counter()
         for k, relative in enumerate(cached):
             if relative is None:
                 prior = relatives[-1].transform if relatives else np.eye(4)
@@ -746,7 +747,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
                 relative.seconds = time.perf_counter() - last  # the wall time it added, its work ahead overlapped
                 write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
             relatives.append(relative)
-            progress_of("pairs", 0)(k + 1)
+            pairs_done(k + 1)
             last = time.perf_counter()
 
         poses = chain_poses([r.transform for r in relatives])
@@ -761,7 +762,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
     paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
     write_tum(paths["trajectory"], np.asarray(sequence.timestamps), poses, header="taichi-gs stage 1, camera-to-world")
     write_text(paths["pairs"], jsonout.dumps({"summary": result.summary(), "pairs": pairs, "edges": result.edges}, indent=1) + "\n")
-    points, colors = fuse_points(sequence, poses, config, on_frame=progress_of("fused cloud", n - 1 + graph_steps))
+    points, colors = fuse_points(sequence, poses, config, on_frame=progress_of("fused cloud", steps - n))
     write_point_cloud(paths["points"], points, colors)
     result.paths = paths
     return result
@@ -830,7 +831,7 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
     views = (frames.view(i), frames.view(j))
     check = None
     if config.verify_flow_weight > 0:
-        check = _flow_check(*seeded_flows(to_gray_u8(color_i), to_gray_u8(color_j), depth_i, depth_j, K, init,
+        check = _flow_check(*seeded_flows(frames.gray(i), frames.gray(j), depth_i, depth_j, K, init,
                                           config.flow_preset))
     chosen = _choose(candidates, views, K, config, ("rgbd-icp-chain", "rgbd-chain", "icp-chain", "chain"),
                      flow_check=check)
