@@ -1,0 +1,58 @@
+"""bench/pose.py's reference breaks: a jump of the reference scores as one, and the ATE between breaks
+aligns the stretches on either side of it separately."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+from format_fixtures import write_7scenes  # noqa: E402
+from pose import pair_scores, reference_breaks, reference_relatives, segment_ate  # noqa: E402
+
+from taichi_gs.evaluate import ate  # noqa: E402
+from taichi_gs.io.sequence import load_sequence  # noqa: E402
+
+
+def _walk(n: int) -> np.ndarray:
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for i in range(n):
+        poses[i, :3, :3] = cv2.Rodrigues(np.array([0.0, 0.02 * i, 0.01 * i]))[0]
+        poses[i, :3, 3] = [0.01 * i, 0.002 * i * i, 0.005 * i]
+    return poses
+
+
+def test_the_ate_between_breaks_ignores_a_jump_of_the_reference():
+    estimate = _walk(30)
+    reference = estimate.copy()
+    reference[15:, :3, 3] += [0.035, 0.0, 0.0]  # the reference jumps 35 mm between frames 14 and 15
+    assert ate(estimate, reference) > 0.005  # about 10 mm after the best rigid alignment
+    assert segment_ate(estimate, reference, [14]) < 1e-9
+    assert segment_ate(estimate, reference, []) == ate(estimate, reference)
+    # a real error inside a stretch still counts
+    wrong = estimate.copy()
+    wrong[20:, :3, 3] += [0.0, 0.01, 0.0]
+    assert segment_ate(wrong, reference, [14]) > 0.003
+
+
+def test_breaks_are_pairs_far_above_the_reference_median():
+    scores = np.full(21, 0.05)
+    scores[10] = 0.3
+    scores[4] = 0.12  # 2.4x: the spread of a real reference, not a break
+    assert reference_breaks(scores, 3.0) == [10]
+    assert reference_breaks(scores, 0.0) == []
+
+
+def test_a_jumped_reference_pair_scores_far_worse_than_the_true_one(tmp_path):
+    write_7scenes(tmp_path / "s")
+    sequence = load_sequence(tmp_path / "s")
+    truth = reference_relatives(sequence.gt_poses)
+    jumped = [r.copy() for r in truth]
+    jumped[1][:3, 3] += [0.035, 0.0, 0.0]
+    true_scores, jumped_scores = pair_scores(sequence, truth), pair_scores(sequence, jumped)
+    assert true_scores[0] == jumped_scores[0]
+    assert jumped_scores[1] > 10 * true_scores[1]
