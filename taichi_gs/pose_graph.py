@@ -31,7 +31,7 @@ class Edge:
     target: int
     transform: np.ndarray  # camera source -> camera target
     information: np.ndarray  # 6 x 6, [translation, rotation], in the target camera
-    kind: str = "odometry"  # odometry | skip | loop
+    kind: str = "odometry"  # odometry | skip | loop | long
     estimate: str = ""  # how the transform was obtained (recorded, not used)
     score: float = float("nan")  # its verification score (recorded, not used)
     weak: bool = False

@@ -292,6 +292,38 @@ def test_graph_edges_take_their_own_odometry_iterations_and_pairs_stay_cached(tm
     assert iterations and set(iterations) == {(10, 5, 3)}  # only the graph's edges ran: the pairs came from the cache
 
 
+def test_long_edges_join_only_cameras_as_close_as_a_loop_closure():
+    config = PoseConfig(graph_long_spans=(8, 16), loop_max_distance_m=0.3, loop_max_angle_deg=30.0)
+    line = np.tile(np.eye(4), (40, 1, 1))
+    line[:, 0, 3] = 0.02 * np.arange(40)  # 2 cm a frame: 16 cm at span 8, 32 cm at span 16
+    assert pose_stage._long_candidates(line, config) == [(i, i + 8) for i in range(32)]
+    turn = np.tile(np.eye(4), (40, 1, 1))
+    for i in range(40):
+        turn[i, :3, :3] = se3_exp(np.array([0.0, 0.0, 0.0, 0.0, np.radians(3.0 * i), 0.0]))[:3, :3]  # 3 deg a frame
+    assert pose_stage._long_candidates(turn, config) == [(i, i + 8) for i in range(32)]
+    assert pose_stage._long_candidates(line, PoseConfig()) == []  # off by default
+
+
+def test_long_edges_are_tried_without_the_score_cap_and_share_the_pair_cache(tmp_path, walk_sequence, monkeypatch):
+    run_pose(walk_sequence, tmp_path, PoseConfig())
+    tried = []
+    original = pose_stage._graph_edge
+
+    def recording(frames, i, j, poses, K, config, kind, max_score):
+        tried.append((kind, j - i, max_score))
+        return original(frames, i, j, poses, K, config, kind, max_score)
+
+    monkeypatch.setattr(pose_stage, "_graph_edge", recording)
+    config = PoseConfig(graph_long_spans=(4,))
+    assert config.pair_key() == PoseConfig().pair_key()
+    result = run_pose(walk_sequence, tmp_path, config)
+    long = [t for t in tried if t[0] == "long"]
+    assert [span for _, span, _ in long] == [4] and long[0][2] == float("inf")
+    assert all(np.isfinite(cap) for kind, _, cap in tried if kind != "long")
+    gt = invert(walk_sequence.gt_poses[0]) @ walk_sequence.gt_poses
+    assert ate(result.poses, gt) < 2e-3
+
+
 def test_frame_without_depth_becomes_weak_constant_velocity_pairs(tmp_path):
     poses = walk(5)
     sequence = SceneSequence(poses, broken_depth={2})

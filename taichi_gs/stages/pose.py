@@ -148,6 +148,11 @@ class PoseConfig:
     loop_every: int = 5  # look for a loop closure at every this-many-th frame
     loop_max_distance_m: float = 0.3  # chained camera centres closer than this ...
     loop_max_angle_deg: float = 30.0  # ... and viewing directions closer than this
+    # [ours] long edges (i, i+k) for k in graph_long_spans, where the chained cameras are as close as a loop
+    # closure's (loop_max_distance_m, loop_max_angle_deg); verified like the other extra edges but not held to
+    # graph_max_score_ratio, whose 1.5x the median pair score admits almost none that long. Off by default:
+    # (16, 32) took 7-Scenes' 250 frames from 18.9 to 14.1 mm (BENCHMARKS, "Stage 1 on 200 and 250 real frames")
+    graph_long_spans: tuple = ()
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
     # [ours] threads (0: one per core this process may run on, at most DEFAULT_MAX_THREADS). The next pairs'
@@ -188,7 +193,7 @@ class PoseConfig:
 _NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_rgbd_iterations",
                     "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m", "graph_info_max_points",
                     "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every", "loop_max_distance_m",
-                    "loop_max_angle_deg", "threads"}
+                    "loop_max_angle_deg", "graph_long_spans", "threads"}
 
 # The method's path alone: flow solve, then point-to-plane ICP behind its guards, pairs chained
 # (as a --config file: [pose] verify = false, rgbd_refine = false, icp_from_prior = false, pose_graph = false,
@@ -791,6 +796,9 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
     def loop_edge(pair: tuple[int, int]) -> Edge | None:
         return _graph_edge(frames, *pair, chained, K, config, "loop", max_score)
 
+    def long_edge(pair: tuple[int, int]) -> Edge | None:
+        return _graph_edge(frames, *pair, chained, K, config, "long", float("inf"))
+
     # one pass from the last frame down, so that the frame cache's window slides once and starts on the frames
     # the pairs left in it (frame by frame and gap by gap, each frame's view was made three times); the edges
     # are listed as before: odometry, then each gap's skip edges, by frame
@@ -806,6 +814,7 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
         edges += [found[g] for _, found in by_frame if found[g] is not None]
     if config.loop_closures:
         edges += [e for e in pool.map(loop_edge, _loop_candidates(chained, config)) if e is not None]
+    edges += [e for e in pool.map(long_edge, _long_candidates(chained, config)) if e is not None]
     return optimise(chained, edges), edges
 
 
@@ -841,6 +850,19 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
                 chosen.estimate, chosen.score)
 
 
+def _close(a: np.ndarray, b: np.ndarray, config: PoseConfig) -> bool:
+    """Whether two cameras are as close as a loop closure's: centres within loop_max_distance_m and viewing
+    directions within loop_max_angle_deg."""
+    cos = float(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))
+    return (float(np.linalg.norm(a[:3, 3] - b[:3, 3])) <= config.loop_max_distance_m
+            and np.degrees(np.arccos(cos)) <= config.loop_max_angle_deg)
+
+
+def _long_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
+    """(i, i + k) for every span k in graph_long_spans whose chained cameras are close (:func:`_close`)."""
+    return [(i, i + k) for k in config.graph_long_spans for i in range(len(poses) - k) if _close(poses[i], poses[i + k], config)]
+
+
 def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
     """(i, j) pairs, j - i >= loop_min_gap, whose chained cameras are close in position and direction:
     for every loop_every-th frame j, the nearest such earlier frame i."""
@@ -849,8 +871,7 @@ def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, i
         best, best_distance = None, config.loop_max_distance_m
         for i in range(0, j - config.loop_min_gap + 1):
             distance = float(np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]))
-            cos = float(np.clip(poses[i][:3, 2] @ poses[j][:3, 2], -1.0, 1.0))
-            if distance <= best_distance and np.degrees(np.arccos(cos)) <= config.loop_max_angle_deg:
+            if distance <= best_distance and _close(poses[i], poses[j], config):
                 best, best_distance = i, distance
         if best is not None:
             pairs.append((best, j))
