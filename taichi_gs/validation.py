@@ -44,6 +44,7 @@ def _each(rule: tuple[Check, str]) -> tuple[Check, str]:
 
 POSITIVE, NON_NEGATIVE, FRACTION = _above(0), _at_least(0), _within(0, 1)
 COUNT, OPTIONAL_COUNT = _at_least(1), _at_least(0)
+FRAME_GAPS = ((lambda v: all(isinstance(k, int) and k >= 2 for k in v)), "a list of frame gaps of at least 2")
 
 FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
     "pose": {
@@ -65,9 +66,8 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
                               "a non-empty list of " + ", ".join(CANDIDATE_NAMES)),
         "verify_grid_points": _at_least(10), "verify_depth_sigma_m": POSITIVE,
         "verify_depth_sigma_quadratic": NON_NEGATIVE, "verify_photo_sigma": POSITIVE,
-        "verify_photo_weight": NON_NEGATIVE, "graph_skips": ((lambda v: all(isinstance(k, int) and k >= 2 for k in v)),
-                                                             "a list of frame gaps of at least 2"),
-        "graph_long_spans": ((lambda v: all(isinstance(k, int) and k >= 2 for k in v)), "a list of frame gaps of at least 2"),
+        "verify_photo_weight": NON_NEGATIVE, "graph_skips": FRAME_GAPS,
+        "graph_long_spans": FRAME_GAPS,
         "graph_weak_weight": NON_NEGATIVE, "graph_info_voxel_m": POSITIVE, "graph_info_max_points": OPTIONAL_COUNT,
         "graph_info_distance_m": POSITIVE,
         "loop_min_gap": _at_least(2), "loop_every": COUNT, "loop_max_distance_m": POSITIVE,

@@ -151,7 +151,7 @@ class PoseConfig:
     # [ours] long edges (i, i+k) for k in graph_long_spans, where the chained cameras are as close as a loop
     # closure's (loop_max_distance_m, loop_max_angle_deg); verified like the other extra edges but not held to
     # graph_max_score_ratio, whose 1.5x the median pair score admits almost none that long. Off by default:
-    # (16, 32) took 7-Scenes' 250 frames from 18.9 to 14.1 mm (BENCHMARKS, "Stage 1 on 200 and 250 real frames")
+    # (16, 32) took 7-Scenes' 250 frames from 18.9 to 14.4 mm (BENCHMARKS, "Stage 1 on 200 and 250 real frames")
     graph_long_spans: tuple = ()
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
@@ -783,21 +783,22 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
     n = len(sequence)
     scores = [r.score for r in relatives if np.isfinite(r.score)]
     max_score = config.graph_max_score_ratio * float(np.median(scores)) if scores else config.verify_max_score
-    skips = [int(k) for k in config.graph_skips]
+    skips, longs = [int(k) for k in config.graph_skips], [int(k) for k in config.graph_long_spans]
+    close = set(_long_candidates(chained, config))
 
-    def frame_edges(i: int) -> tuple[Edge, list[Edge | None]]:
+    def frame_edges(i: int) -> tuple[Edge, list[Edge | None], list[Edge | None]]:
         r = relatives[i]
         info = _information(frames, i, i + 1, r.transform, config)
         odometry = Edge(i, i + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0),
                         "odometry", r.estimate, r.score, r.weak)
-        return odometry, [_graph_edge(frames, i, i + k, chained, K, config, "skip", max_score) if i + k < n else None
-                          for k in skips]
+        skip = [_graph_edge(frames, i, i + k, chained, K, config, "skip", max_score) if i + k < n else None
+                for k in skips]
+        long = [_graph_edge(frames, i, i + k, chained, K, config, "long", float("inf")) if (i, i + k) in close else None
+                for k in longs]
+        return odometry, skip, long
 
     def loop_edge(pair: tuple[int, int]) -> Edge | None:
         return _graph_edge(frames, *pair, chained, K, config, "loop", max_score)
-
-    def long_edge(pair: tuple[int, int]) -> Edge | None:
-        return _graph_edge(frames, *pair, chained, K, config, "long", float("inf"))
 
     # one pass from the last frame down, so that the frame cache's window slides once and starts on the frames
     # the pairs left in it (frame by frame and gap by gap, each frame's view was made three times); the edges
@@ -809,12 +810,13 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
         if on_frame is not None:
             on_frame(len(by_frame))
     by_frame.reverse()
-    edges = [odometry for odometry, _ in by_frame]
+    edges = [odometry for odometry, _, _ in by_frame]
     for g in range(len(skips)):
-        edges += [found[g] for _, found in by_frame if found[g] is not None]
+        edges += [skip[g] for _, skip, _ in by_frame if skip[g] is not None]
     if config.loop_closures:
         edges += [e for e in pool.map(loop_edge, _loop_candidates(chained, config)) if e is not None]
-    edges += [e for e in pool.map(long_edge, _long_candidates(chained, config)) if e is not None]
+    for g in range(len(longs)):  # each frame's long edges ran with its other edges (the progress counts them)
+        edges += [long[g] for _, _, long in by_frame if long[g] is not None]
     return optimise(chained, edges), edges
 
 
