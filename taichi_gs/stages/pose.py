@@ -852,31 +852,30 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
                 chosen.estimate, chosen.score)
 
 
-def _close(a: np.ndarray, b: np.ndarray, config: PoseConfig) -> bool:
-    """Whether two cameras are as close as a loop closure's: centres within loop_max_distance_m and viewing
-    directions within loop_max_angle_deg."""
-    cos = float(np.clip(a[:3, 2] @ b[:3, 2], -1.0, 1.0))
-    return (float(np.linalg.norm(a[:3, 3] - b[:3, 3])) <= config.loop_max_distance_m
-            and np.degrees(np.arccos(cos)) <= config.loop_max_angle_deg)
+def _close(a: np.ndarray, b: np.ndarray, config: PoseConfig) -> np.ndarray:
+    """Whether cameras ``a`` and ``b`` (4 x 4 poses, or stacks of them that broadcast) are as close as a loop
+    closure's: centres within loop_max_distance_m and viewing directions within loop_max_angle_deg."""
+    distance = np.linalg.norm(a[..., :3, 3] - b[..., :3, 3], axis=-1)
+    cos = np.clip(np.sum(a[..., :3, 2] * b[..., :3, 2], axis=-1), -1.0, 1.0)
+    return (distance <= config.loop_max_distance_m) & (np.degrees(np.arccos(cos)) <= config.loop_max_angle_deg)
 
 
 def _long_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
     """(i, i + k) for every span k in graph_long_spans whose chained cameras are close (:func:`_close`)."""
-    return [(i, i + k) for k in config.graph_long_spans for i in range(len(poses) - k) if _close(poses[i], poses[i + k], config)]
+    return [(int(i), int(i) + k) for k in config.graph_long_spans
+            for i in np.flatnonzero(_close(poses[:len(poses) - k], poses[k:], config))]
 
 
 def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
     """(i, j) pairs, j - i >= loop_min_gap, whose chained cameras are close in position and direction:
-    for every loop_every-th frame j, the nearest such earlier frame i."""
+    for every loop_every-th frame j, the nearest such earlier frame i (the last of equally near ones)."""
     pairs = []
     for j in range(config.loop_min_gap, len(poses), max(config.loop_every, 1)):
-        best, best_distance = None, config.loop_max_distance_m
-        for i in range(0, j - config.loop_min_gap + 1):
-            distance = float(np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]))
-            if distance <= best_distance and _close(poses[i], poses[j], config):
-                best, best_distance = i, distance
-        if best is not None:
-            pairs.append((best, j))
+        earlier = poses[:j - config.loop_min_gap + 1]
+        distance = np.where(_close(earlier, poses[j], config),
+                            np.linalg.norm(earlier[:, :3, 3] - poses[j, :3, 3], axis=1), np.inf)
+        if np.isfinite(distance).any():
+            pairs.append((int(np.flatnonzero(distance == distance.min())[-1]), j))
     return pairs
 
 
