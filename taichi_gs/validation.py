@@ -67,7 +67,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "verify_grid_points": _at_least(10), "verify_depth_sigma_m": POSITIVE,
         "verify_depth_sigma_quadratic": NON_NEGATIVE, "verify_photo_sigma": POSITIVE,
         "verify_photo_weight": NON_NEGATIVE, "graph_skips": FRAME_GAPS,
-        "graph_long_spans": FRAME_GAPS,
+        "graph_long_spans": FRAME_GAPS, "graph_long_every": COUNT,
         "graph_weak_weight": NON_NEGATIVE, "graph_info_voxel_m": POSITIVE, "graph_info_max_points": OPTIONAL_COUNT,
         "graph_info_distance_m": POSITIVE,
         "loop_min_gap": _at_least(2), "loop_every": COUNT, "loop_max_distance_m": POSITIVE,

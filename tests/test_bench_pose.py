@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -12,7 +13,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 from format_fixtures import write_7scenes  # noqa: E402
-from pose import pair_scores, reference_breaks, reference_relatives, segment_ate  # noqa: E402
+import pose as bench_pose  # noqa: E402
+from pose import OURS, pair_scores, reference_breaks, reference_relatives, run_ours, segment_ate  # noqa: E402
 
 from taichi_gs.evaluate import ate  # noqa: E402
 from taichi_gs.io.sequence import load_sequence  # noqa: E402
@@ -56,3 +58,22 @@ def test_a_jumped_reference_pair_scores_far_worse_than_the_true_one(tmp_path):
     true_scores, jumped_scores = pair_scores(sequence, truth), pair_scores(sequence, jumped)
     assert true_scores[0] == jumped_scores[0]
     assert jumped_scores[1] > 10 * true_scores[1]
+
+
+def test_a_variant_that_changes_only_the_graph_starts_from_the_earlier_pairs(tmp_path, monkeypatch):
+    found = []
+
+    def fake_run_pose(sequence, work, config):
+        pairs = work / "pose" / "pairs"
+        found.append(sorted(p.name for p in pairs.glob("*.json")) if pairs.is_dir() else [])
+        pairs.mkdir(parents=True, exist_ok=True)
+        (pairs / f"{config.pair_key()}.json").write_text("{}")
+        return SimpleNamespace(pairs=[{"seconds": 1.0, "weak": False}], edges=[], graph_seconds=0.5)
+
+    monkeypatch.setattr(bench_pose, "run_pose", fake_run_pose)
+    caches = {}
+    for method in ("ours", "ours long edges every 4", "ours no flow check", "ours long edges"):
+        _, seconds, _ = run_ours([0, 1], OURS[method], tmp_path / method, caches)
+        assert seconds == 1.5  # the pairs' own seconds and the graph's
+    ours_pairs = [f"{bench_pose.PoseConfig().pair_key()}.json"]
+    assert found == [[], ours_pairs, [], ours_pairs]  # the flow-check variant changes the pairs: its own cache

@@ -181,6 +181,7 @@ def test_config_file_overrides_presets_and_rejects_unknown_keys(tmp_path):
     ("pose", "graph_info_max_points = -5", "graph_info_max_points = -5 must be at least 0"),
     ("pose", "threads = -1", "threads = -1 must be at least 0"),
     ("pose", "graph_long_spans = [1]", "graph_long_spans"),
+    ("pose", "graph_long_every = 0", "graph_long_every"),
 ])
 def test_bad_config_values_are_refused_before_any_work(tmp_path, table, line, message):
     path = tmp_path / "bad.toml"

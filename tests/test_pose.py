@@ -293,7 +293,7 @@ def test_graph_edges_take_their_own_odometry_iterations_and_pairs_stay_cached(tm
 
 
 def test_long_edges_join_only_cameras_as_close_as_a_loop_closure():
-    config = PoseConfig(graph_long_spans=(8, 16), loop_max_distance_m=0.3, loop_max_angle_deg=30.0)
+    config = PoseConfig(graph_long_spans=(8, 16), graph_long_every=1, loop_max_distance_m=0.3, loop_max_angle_deg=30.0)
     line = np.tile(np.eye(4), (40, 1, 1))
     line[:, 0, 3] = 0.02 * np.arange(40)  # 2 cm a frame: 16 cm at span 8, 32 cm at span 16
     assert pose_stage._long_candidates(line, config) == [(i, i + 8) for i in range(32)]
@@ -302,6 +302,11 @@ def test_long_edges_join_only_cameras_as_close_as_a_loop_closure():
         turn[i, :3, :3] = se3_exp(np.array([0.0, 0.0, 0.0, 0.0, np.radians(3.0 * i), 0.0]))[:3, :3]  # 3 deg a frame
     assert pose_stage._long_candidates(turn, config) == [(i, i + 8) for i in range(32)]
     assert pose_stage._long_candidates(line, PoseConfig()) == []  # off by default
+    every_4th = dataclasses.replace(config, graph_long_every=4)
+    assert PoseConfig().graph_long_every == 4
+    assert pose_stage._long_candidates(line, every_4th) == [(i, i + 8) for i in range(0, 32, 4)]
+    line[12:, 0, 3] += 1.0  # a 1 m jump between frames 11 and 12: no close pair spans it
+    assert pose_stage._long_candidates(line, every_4th) == [(0, 8), (12, 20), (16, 24), (20, 28), (24, 32), (28, 36)]
 
 
 def test_long_edges_are_tried_without_the_score_cap_and_share_the_pair_cache(tmp_path, walk_sequence, monkeypatch):

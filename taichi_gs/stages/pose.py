@@ -148,11 +148,14 @@ class PoseConfig:
     loop_every: int = 5  # look for a loop closure at every this-many-th frame
     loop_max_distance_m: float = 0.3  # chained camera centres closer than this ...
     loop_max_angle_deg: float = 30.0  # ... and viewing directions closer than this
-    # [ours] long edges (i, i+k) for k in graph_long_spans, where the chained cameras are as close as a loop
-    # closure's (loop_max_distance_m, loop_max_angle_deg); verified like the other extra edges but not held to
-    # graph_max_score_ratio, whose 1.5x the median pair score admits almost none that long. Off by default:
-    # (16, 32) took 7-Scenes' 250 frames from 18.9 to 14.4 mm (BENCHMARKS, "Stage 1 on 200 and 250 real frames")
+    # [ours] long edges (i, i+k) for k in graph_long_spans, from every graph_long_every-th frame i, where the
+    # chained cameras are as close as a loop closure's (loop_max_distance_m, loop_max_angle_deg); verified like
+    # the other extra edges but not held to graph_max_score_ratio, whose 1.5x the median pair score admits almost
+    # none that long. Off by default: [16, 32] from every 4th frame took 7-Scenes' 250 frames from 35.1 to
+    # 17.2 mm, but 7-Scenes 0-118 at every 2nd frame from 8.2 to 16.3 mm (BENCHMARKS, "Long edges from every
+    # 4th frame"); from every frame: four times the edges, 1.31x the stage's time instead of 1.09x.
     graph_long_spans: tuple = ()
+    graph_long_every: int = 4
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
     # [ours] threads (0: one per core this process may run on, at most DEFAULT_MAX_THREADS). The next pairs'
@@ -193,7 +196,7 @@ class PoseConfig:
 _NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_rgbd_iterations",
                     "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m", "graph_info_max_points",
                     "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every", "loop_max_distance_m",
-                    "loop_max_angle_deg", "graph_long_spans", "threads"}
+                    "loop_max_angle_deg", "graph_long_spans", "graph_long_every", "threads"}
 
 # The method's path alone: flow solve, then point-to-plane ICP behind its guards, pairs chained
 # (as a --config file: [pose] verify = false, rgbd_refine = false, icp_from_prior = false, pose_graph = false,
@@ -861,9 +864,11 @@ def _close(a: np.ndarray, b: np.ndarray, config: PoseConfig) -> np.ndarray:
 
 
 def _long_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
-    """(i, i + k) for every span k in graph_long_spans whose chained cameras are close (:func:`_close`)."""
+    """(i, i + k) for every span k in graph_long_spans and every graph_long_every-th frame i whose chained
+    cameras are close (:func:`_close`)."""
+    every = max(config.graph_long_every, 1)
     return [(int(i), int(i) + k) for k in config.graph_long_spans
-            for i in np.flatnonzero(_close(poses[:len(poses) - k], poses[k:], config))]
+            for i in np.flatnonzero(_close(poses[:len(poses) - k:every], poses[k::every], config)) * every]
 
 
 def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
