@@ -12,9 +12,8 @@ Methods (each from identity at frame 0):
 - ours no graph: the same run's verified pairs, chained (graph ablation, no extra cost)
 - ours no flow check: ours with candidates scored without their disagreement with the measured flow
 - ours dense verification: ours with four times the verification grid (12000 points a direction)
-- ours long edges: ours with ``[pose] graph_long_spans = [16, 32]`` (long edges between close cameras) from every
-  frame (``graph_long_every = 1``)
-- ours long edges every 4: the same from every 4th frame only (``graph_long_every = 4``, its default)
+- ours no long edges: ours with ``[pose] graph_long_spans = []`` (no long edges between close cameras)
+- ours long edges every frame: ours with long edges from every frame (``graph_long_every = 1``), not every 4th
 - ours no verify: the flow -> ICP -> RGB-D odometry path behind the method's guards, no graph
 - method: the paper's path only (flow solve, then point-to-plane ICP), chained
 - cand:NAME: one candidate of ours' run (flow, icp, icp-prior, rgbd-icp, ...), chained (verification ablation)
@@ -66,8 +65,8 @@ OURS = {
     "ours": {},
     "ours no flow check": {"verify_flow_weight": 0.0},
     "ours flow weight 0.2": {"verify_flow_weight": 0.2},
-    "ours long edges": {"graph_long_spans": (16, 32), "graph_long_every": 1},
-    "ours long edges every 4": {"graph_long_spans": (16, 32), "graph_long_every": 4},
+    "ours no long edges": {"graph_long_spans": ()},
+    "ours long edges every frame": {"graph_long_every": 1},
     "ours light graph odometry": {"graph_rgbd_iterations": (10, 5, 3)},
     "ours dense verification": {"verify_grid_points": 12000},
     "ours no verify": {"verify": False, "pose_graph": False},

@@ -72,7 +72,7 @@ def test_a_variant_that_changes_only_the_graph_starts_from_the_earlier_pairs(tmp
 
     monkeypatch.setattr(bench_pose, "run_pose", fake_run_pose)
     caches = {}
-    for method in ("ours", "ours long edges every 4", "ours no flow check", "ours long edges"):
+    for method in ("ours", "ours no long edges", "ours no flow check", "ours long edges every frame"):
         _, seconds, _ = run_ours([0, 1], OURS[method], tmp_path / method, caches)
         assert seconds == 1.5  # the pairs' own seconds and the graph's
     ours_pairs = [f"{bench_pose.PoseConfig().pair_key()}.json"]

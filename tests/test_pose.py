@@ -301,9 +301,11 @@ def test_long_edges_join_only_cameras_as_close_as_a_loop_closure():
     for i in range(40):
         turn[i, :3, :3] = se3_exp(np.array([0.0, 0.0, 0.0, 0.0, np.radians(3.0 * i), 0.0]))[:3, :3]  # 3 deg a frame
     assert pose_stage._long_candidates(turn, config) == [(i, i + 8) for i in range(32)]
-    assert pose_stage._long_candidates(line, PoseConfig()) == []  # off by default
+    assert pose_stage._long_candidates(line, PoseConfig(graph_long_spans=())) == []
+    assert pose_stage._long_candidates(line[:12], config) == [(i, i + 8) for i in range(4)]  # no span of 16 there
     every_4th = dataclasses.replace(config, graph_long_every=4)
-    assert PoseConfig().graph_long_every == 4
+    default = PoseConfig()
+    assert (default.graph_long_spans, default.graph_long_every) == ((16, 32), 4)
     assert pose_stage._long_candidates(line, every_4th) == [(i, i + 8) for i in range(0, 32, 4)]
     line[12:, 0, 3] += 1.0  # a 1 m jump between frames 11 and 12: no close pair spans it
     assert pose_stage._long_candidates(line, every_4th) == [(0, 8), (12, 20), (16, 24), (20, 28), (24, 32), (28, 36)]

