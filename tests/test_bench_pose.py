@@ -1,5 +1,5 @@
-"""bench/pose.py's reference breaks: a jump of the reference scores as one, and the ATE between breaks
-aligns the stretches on either side of it separately."""
+"""bench/pose.py: a jump of the reference scores as a break, the ATE between breaks aligns the stretches on
+either side of it separately, and a variant that changes only the graph starts from the pairs already computed."""
 
 from __future__ import annotations
 
