@@ -14,6 +14,9 @@
   of ``every`` frames and the frame of highest Laplacian variance in each window is held out, so the
   test views are as many as with "every n-th frame", spread over the whole sequence, and each is the
   least blurred frame near its place: the closest thing to sharp ground truth a real capture has.
+  As with "every n-th frame", each held-out frame lies between two training frames: never the first
+  or last frame, never next to another held-out frame (two in a row would leave a gap of three
+  frames in training, and each test view one frame further from a training view on one side).
 - :func:`warp_to_view`: a neighbouring frame's colour resampled into a test view through the test
   view's own depth and the two camera poses; the "blurred neighbour" floor that renders of a held-out
   frame must beat.
@@ -64,10 +67,11 @@ def laplacian_variance(image: np.ndarray) -> float:
 
 
 def sharpest_holdout(sharpness: np.ndarray | list[float], every: int) -> tuple[list[int], list[int]]:
-    """(train, test) indices: in each window of ``every`` consecutive frames the sharpest is a test view
-    (ties go to the earlier frame); a last window shorter than ``every`` joins the one before it, so no
-    frame is held out for want of rivals (a lone last frame would be, however blurred); ``every`` 0 holds
-    nothing out."""
+    """(train, test) indices: in each window of ``every`` consecutive frames the sharpest frame that has
+    training frames on both sides is a test view (ties go to the earlier frame). Windows are taken in
+    order: a frame next to the previous window's test view, and the sequence's first and last frames,
+    are not candidates, and a window without candidates holds nothing out. A last window shorter than
+    ``every`` joins the one before it. ``every`` 0 holds nothing out."""
     sharpness = np.asarray(sharpness, dtype=np.float64)
     n = len(sharpness)
     if every <= 0:
@@ -77,9 +81,12 @@ def sharpest_holdout(sharpness: np.ndarray | list[float], every: int) -> tuple[l
     starts = list(range(0, n, every))
     if len(starts) > 1 and n - starts[-1] < every:
         starts.pop()
-    test = [start + int(np.argmax(sharpness[start:end])) for start, end in zip(starts, [*starts[1:], n])]
-    if n - len(test) < 1:
-        raise ValueError(f"{n} frames leave no training view with one test view every {every}")
+    test: list[int] = []
+    for start, end in zip(starts, [*starts[1:], n]):
+        first = max(start, 1, test[-1] + 2 if test else 0)  # candidates: first .. stop - 1
+        stop = min(end, n - 1)
+        if first < stop:
+            test.append(first + int(np.argmax(sharpness[first:stop])))
     held = set(test)
     return [i for i in range(n) if i not in held], test
 

@@ -53,8 +53,9 @@ def protocol_text(split: dict[str, Any]) -> str:
     """One line naming how the held-out views were chosen and what they are scored against."""
     every = split.get("holdout_every", 0)
     if split.get("holdout") == "sharpest":
-        chosen = (f"held-out views: the sharpest frame (variance of the Laplacian) of each "
-                  f"window of {every} frames (a shorter last window joins the one before it)")
+        chosen = (f"held-out views: the sharpest frame (variance of the Laplacian) of each window of {every} "
+                  f"frames (a shorter last window joins the one before it) that lies between two training "
+                  f"frames (not the first or last frame, not next to another held-out frame)")
     elif every:
         chosen = f"held-out views: frames 1, 1 + {every}, 1 + 2 x {every}, ... (not chosen by sharpness)"
     else:

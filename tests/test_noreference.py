@@ -50,15 +50,33 @@ def test_gradient_energy_scales_with_contrast_and_falls_with_blur():
 
 
 def test_sharpest_holdout_takes_the_sharpest_of_each_window():
-    train, test = sharpest_holdout([1, 5, 2, 3, 3, 1, 4, 2, 0, 9], every=3)
-    assert test == [1, 3, 9]  # windows [0, 3), [3, 6) (tie: earlier frame), [6, 10): the short last one joined
-    assert train == [0, 2, 4, 5, 6, 7, 8]
+    train, test = sharpest_holdout([1, 5, 2, 3, 1, 3, 4, 2, 0, 9], every=3)
+    # windows [0, 3), [3, 6) (tie: earlier frame), [6, 10): the short last one joined; the last frame,
+    # sharpest of its window, has no training frame after it
+    assert test == [1, 3, 6]
+    assert train == [0, 2, 4, 5, 7, 8, 9]
     assert sharpest_holdout([1, 5, 2, 3, 3, 1, 0.5], every=3)[1] == [1, 3]  # a blurred lone last frame trains
     assert sharpest_holdout([1, 5, 2, 3, 3, 1], every=3)[1] == [1, 3]
-    assert sharpest_holdout([1, 5], every=3)[1] == [1]  # one window, shorter than every: still one test view
+    assert sharpest_holdout([1, 5, 1], every=3)[1] == [1]  # one window, shorter than every: still one test view
     assert sharpest_holdout([1, 2, 3], every=0) == ([0, 1, 2], [])
-    with pytest.raises(ValueError):
-        sharpest_holdout([1.0], every=2)
+
+
+def test_sharpest_holdout_keeps_training_frames_on_both_sides_of_each_test_view():
+    # the sharpest of windows [0, 3) and [3, 6) are frames 2 and 3, side by side: the second window takes
+    # its sharpest frame that is not next to frame 2
+    assert sharpest_holdout([1, 2, 9, 9, 1, 5, 1, 1, 1], every=3)[1] == [2, 5, 7]
+    # the first and last frames are never test views (no training frame beyond them)
+    assert sharpest_holdout([9, 1, 2, 1, 1, 9], every=3)[1] == [2, 4]
+    assert sharpest_holdout([9, 1], every=3)[1] == []  # no frame lies between two others
+    # a window whose only candidate is next to the previous test view holds nothing out
+    assert sharpest_holdout([1, 9, 5, 1, 1, 1], every=2)[1] == [1, 3]
+    train, test = sharpest_holdout([1, 9, 1, 9, 1, 1], every=2)
+    assert test == [1, 3] and train == [0, 2, 4, 5]
+    for n, every in [(40, 3), (41, 3), (60, 4), (7, 2), (5, 5)]:
+        sharpness = np.random.default_rng(n + every).random(n)
+        train, test = sharpest_holdout(sharpness, every)
+        assert all(0 < i < n - 1 for i in test) and all(b - a >= 2 for a, b in zip(test, test[1:]))
+        assert sorted(train + test) == list(range(n))
 
 
 def test_choose_split_holds_out_the_least_blurred_frames():
@@ -66,7 +84,7 @@ def test_choose_split_holds_out_the_least_blurred_frames():
     sigmas = [2.0, 0.5, 3.0, 2.5, 1.5, 0.3, 1.0, 2.0, 4.0]
     colors = [cv2.GaussianBlur(base, (0, 0), s) for s in sigmas]
     train, test, sharpness = choose_split(colors, "sharpest", 3)
-    assert test == [1, 5, 6] and train == [0, 2, 3, 4, 7, 8]
+    assert test == [1, 5, 7] and train == [0, 2, 3, 4, 6, 8]  # 6, sharper than 7, is next to 5
     assert np.argsort(sharpness).tolist() == np.argsort(-np.array(sigmas), kind="stable").tolist()
     assert choose_split(colors, "every", 3)[1] == [1, 4, 7]
     with pytest.raises(InputError):

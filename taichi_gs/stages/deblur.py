@@ -4,7 +4,8 @@ its exposure start and end; the loss is (1 - l_B) L1 + l_B D-SSIM of that mean a
 plus l_D times the masked depth L1 of the mid-exposure render. All Gaussian parameters (with
 3DGS-style densification and pruning) and both exposure offsets of every training frame are
 trained. Every ``holdout_every``-th frame (1, 1 + h, ...) is held out (or, with ``holdout =
-"sharpest"``, the sharpest frame of each window of h frames, for real data); its camera comes from
+"sharpest"``, the sharpest frame of each window of h frames that lies between two training frames,
+for real data); its camera comes from
 stage 2 and, optionally, a test-time refinement of its own exposure against its blurred frame with
 the scene frozen (no ground truth places a camera).
 """
@@ -52,7 +53,7 @@ class DeblurConfig:
 
     k: int = 15  # virtual sharp views per exposure
     holdout_every: int = 3  # one test view per h frames; 0 = train on all
-    holdout: str = "every"  # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data)
+    holdout: str = "every"  # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data; never two in a row)
     iterations: int = 30000
     lambda_dssim: float = 0.2  # l_B
     lambda_depth: float = 0.1  # l_D
@@ -267,7 +268,8 @@ def training_frame(train: list[int], iteration: int, rng: np.random.Generator, s
 
 def choose_split(colors: list[np.ndarray], holdout: str, holdout_every: int) -> tuple[list[int], list[int], list[float]]:
     """(train, test, sharpness): ``holdout`` "every" takes :func:`split_frames`; "sharpest" holds out
-    the sharpest frame (``noreference.laplacian_variance``) of each window of ``holdout_every`` frames."""
+    the sharpest frame (``noreference.laplacian_variance``) of each window of ``holdout_every`` frames
+    that lies between two training frames (:func:`noreference.sharpest_holdout`)."""
     sharpness = [laplacian_variance(c) for c in colors]
     if holdout == "every":
         return (*split_frames(len(colors), holdout_every), sharpness)
