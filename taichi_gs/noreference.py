@@ -12,10 +12,10 @@
   neighbours. Noise raises it too, but frames next to each other share their noise level.
 - :func:`sharpest_holdout`: the real-data test split. The sequence is cut into consecutive windows
   of ``every`` frames and the frame of highest Laplacian variance in each window is held out, so the
-  test views are as many as with "every n-th frame", spread over the whole sequence, and each is the
-  least blurred frame near its place: the closest thing to sharp ground truth a real capture has.
-  As with "every n-th frame", each held-out frame lies between two training frames: never the first
-  or last frame, never next to another held-out frame (two in a row would leave a gap of three
+  test views are about as many as with "every n-th frame", spread over the whole sequence, and each
+  is the least blurred frame near its place: the closest thing to sharp ground truth a real capture
+  has. As with "every n-th frame", each held-out frame lies between two training frames: never the
+  first or last frame, never next to another held-out frame (two in a row would leave a gap of three
   frames in training, and each test view one frame further from a training view on one side).
 - :func:`warp_to_view`: a neighbouring frame's colour resampled into a test view through the test
   view's own depth and the two camera poses; the "blurred neighbour" floor that renders of a held-out

@@ -59,6 +59,8 @@ def test_sharpest_holdout_takes_the_sharpest_of_each_window():
     assert sharpest_holdout([1, 5, 2, 3, 3, 1], every=3)[1] == [1, 3]
     assert sharpest_holdout([1, 5, 1], every=3)[1] == [1]  # one window, shorter than every: still one test view
     assert sharpest_holdout([1, 2, 3], every=0) == ([0, 1, 2], [])
+    with pytest.raises(ValueError):
+        sharpest_holdout([1.0, 2.0, 3.0], every=1)
 
 
 def test_sharpest_holdout_keeps_training_frames_on_both_sides_of_each_test_view():

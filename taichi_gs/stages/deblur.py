@@ -4,10 +4,9 @@ its exposure start and end; the loss is (1 - l_B) L1 + l_B D-SSIM of that mean a
 plus l_D times the masked depth L1 of the mid-exposure render. All Gaussian parameters (with
 3DGS-style densification and pruning) and both exposure offsets of every training frame are
 trained. Every ``holdout_every``-th frame (1, 1 + h, ...) is held out (or, with ``holdout =
-"sharpest"``, the sharpest frame of each window of h frames that lies between two training frames,
-for real data); its camera comes from
-stage 2 and, optionally, a test-time refinement of its own exposure against its blurred frame with
-the scene frozen (no ground truth places a camera).
+"sharpest"``, for real data, the sharpest frame of each window of h frames that lies between two
+training frames); its camera comes from stage 2 and, optionally, a test-time refinement of its own
+exposure against its blurred frame with the scene frozen (no ground truth places a camera).
 """
 
 from __future__ import annotations
@@ -53,7 +52,7 @@ class DeblurConfig:
 
     k: int = 15  # virtual sharp views per exposure
     holdout_every: int = 3  # one test view per h frames; 0 = train on all
-    holdout: str = "every"  # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data; never two in a row)
+    holdout: str = "every"  # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data)
     iterations: int = 30000
     lambda_dssim: float = 0.2  # l_B
     lambda_depth: float = 0.1  # l_D
