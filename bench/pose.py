@@ -5,7 +5,9 @@
     python bench/pose.py --sequence FOLDER [--sequence FOLDER ...]   # any folders with ground truth
 
 Sequences: ``taichi_gs.synth`` (extreme blur) for every scene kind, trajectory kind and seed, and the 7-Scenes
-RedKitchen slice of ../shared/data (``bench/realdata.py``) at every 1st, 2nd, 3rd frame.
+RedKitchen slice of ../shared/data at every 1st, 2nd, 3rd frame, read as shipped (``--camera shipped``:
+colour and depth as one camera with the dataset's K, as every figure of this benchmark before 2026-11-28
+read it; the reader's default now registers depth to the colour camera).
 
 Methods (each from identity at frame 0):
 - ours: the stage as shipped (verified candidates + robust pose graph)
@@ -40,7 +42,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -54,9 +55,6 @@ from taichi_gs.icp import align, depth_cloud, prepare_icp, rgbd_odometry
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.pose_verify import frame_view, verify
 from taichi_gs.stages.pose import PoseConfig, chain_poses, run_pose
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from realdata import convert_7scenes  # noqa: E402
 
 SEVEN_SCENES = Path("/work/shared/data/7scenes_redkitchen_000-249")
 BREAK_RATIO = 3.0  # a reference pair scoring above this x its median is a break (see reference_breaks)
@@ -349,10 +347,8 @@ def sequences(args, root: Path):
                                  blur="extreme", seed=seed), folder)
         yield f"{scene} {trajectory} {w}x{h} seed {seed}", load_sequence(folder)
     for every in (int(e) for e in args.real_every.split(",") if e):
-        folder = root / f"7scenes_every{every}_x{args.real_scale:g}"
-        if not (folder / "frames.txt").is_file():
-            convert_7scenes(folder, SEVEN_SCENES, first=0, count=args.frames, every=every, scale=args.real_scale)
-        yield f"7-Scenes every {every} x{args.real_scale:g}", load_sequence(folder)
+        yield f"7-Scenes every {every} x{args.real_scale:g}", load_sequence(
+            SEVEN_SCENES, camera="shipped", every=every, count=args.frames, scale=args.real_scale)
 
 
 if __name__ == "__main__":

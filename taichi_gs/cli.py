@@ -282,7 +282,7 @@ TrustDepthOption = Annotated[bool, typer.Option(
 TimeToleranceOption = Annotated[Optional[float], typer.Option(
     "--time-tolerance", min=0.0, help="TUM layout: max seconds between associated colour and depth (default 0.02).")]
 FormatOption = Annotated[Optional[str], typer.Option("--format", help="Input layout (default: detected): taichi-gs | tum | 7scenes | scannet | replica | stray.")]
-CameraOption = Annotated[Optional[str], typer.Option("--camera", help="TUM camera fr1 | fr2 | fr3 (intrinsics and distortion; default from the folder name).")]
+CameraOption = Annotated[Optional[str], typer.Option("--camera", help="TUM: fr1 | fr2 | fr3 (intrinsics and distortion; default from the folder name). 7-Scenes: registered (default: depth moved into the colour camera) | shipped (colour and depth as one camera, as distributed).")]
 EveryOption = Annotated[int, typer.Option("--every", min=1, help="Keep every N-th frame.")]
 FirstOption = Annotated[int, typer.Option("--first", min=0, help="Start at this frame of the sequence as read (counted from 0; TUM: after colour-depth association).")]
 CountOption = Annotated[int, typer.Option("--count", min=0, help="Keep this many frames (after --every; 0: to the end).")]

@@ -101,6 +101,8 @@ def open_run_sequence(run_dir: Path, gt: Path | None = None) -> Sequence:
     if gt is not None:
         options.pop("format", None)
         options.pop("camera", None)
+    elif options.get("format") == "7scenes" and options.get("camera") is None:
+        options["camera"] = "shipped"  # recorded before 7-Scenes was read registered by default
     try:
         override = IntrinsicsOverride(**options.pop("override", {}))
         return load_sequence(folder, override, **options)

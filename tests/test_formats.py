@@ -46,9 +46,9 @@ def test_every_layout_reads_the_same_scene(name, tmp_path):
         assert len(points) > 0.8 * depth.size * (1 - info.get("masked_columns", 0) / depth.shape[1])
         expected, expected_depth = render(seq.K(), seq.gt_poses[i], *info["size"])
         # a depth step dz moves a point on a ray by dz / cos <= 1.2 dz along z here; a nearest-neighbour
-        # remap (TUM's undistortion) may take the depth of a pixel up to 0.71 px away
+        # remap (TUM's undistortion, 7-Scenes' registration) may take the depth of a pixel up to 0.71 px away
         tolerance = 0.6 * info["step"] * 1.2 + 1e-6
-        if name == "tum":
+        if name == "tum" or info.get("resampled_depth"):
             tolerance += 0.71 * 1.2 * max(np.abs(np.diff(expected_depth, axis=a)).max() for a in (0, 1))
         assert np.abs(points[:, 2] - PLANE_Z).max() <= tolerance
         error = np.abs(seq.color(i) - expected)[3:-3, 3:-3]  # borders: resampling / undistortion edges
@@ -59,9 +59,33 @@ def test_7scenes_seq_folder_defaults_and_no_reading_code(tmp_path):
     write_7scenes(tmp_path / "scene", seq=True)
     seq = load_sequence(tmp_path / "scene")
     assert seq.source["format"] == "7scenes" and seq.names[0] == "frame-000000"
-    assert (seq.intrinsics.fx, seq.intrinsics.cx, seq.intrinsics.cy, seq.intrinsics.depth_scale) == (585, 320, 240, 1000)
+    assert seq.source["camera"] == "registered"
+    assert (seq.intrinsics.fx, seq.intrinsics.cx, seq.intrinsics.cy, seq.intrinsics.depth_scale) == (526.5, 320, 240, 1000)
     assert np.allclose(seq.timestamps, [0, 1 / 30, 2 / 30])
-    assert np.all(seq.depth(0)[:2, :5] == 0)  # 65535 = no reading
+    assert 0 < seq.depth(0).max() < PLANE_Z + 1  # 65535 = no reading, not a far surface
+    raw = load_sequence(tmp_path / "scene", camera="shipped")
+    assert (raw.intrinsics.fx, raw.intrinsics.cx, raw.intrinsics.cy) == (585, 320, 240)
+    assert np.all(raw.depth(0)[:2, :5] == 0)
+    assert np.allclose(raw.gt_poses[:, :3, 3] - seq.gt_poses[:, :3, 3],
+                       -truth_poses()[:, :3, 0] * 0.025, atol=1e-6)  # the depth camera, 2.5 cm along -x
+
+
+def test_a_7scenes_run_recorded_before_registration_reopens_as_shipped(tmp_path):
+    """Run folders made when 7-Scenes was read as one camera recorded no camera: they reopen that way."""
+    write_7scenes(tmp_path / "s")
+    write_run_info(tmp_path / "new", load_sequence(tmp_path / "s"))
+    assert open_run_sequence(tmp_path / "new").source["camera"] == "registered"
+    write_run_info(tmp_path / "old", load_sequence(tmp_path / "s", camera="shipped"))
+    record = json.loads((tmp_path / "old" / "run.json").read_text())
+    record["load_options"]["camera"] = None
+    (tmp_path / "old" / "run.json").write_text(json.dumps(record))
+    assert open_run_sequence(tmp_path / "old").source["camera"] == "shipped"
+
+
+def test_7scenes_camera_names_are_checked(tmp_path):
+    write_7scenes(tmp_path / "s")
+    with pytest.raises(InputError, match="unknown --camera 'fr1' for 7-Scenes"):
+        load_sequence(tmp_path / "s", camera="fr1")
 
 
 def test_rounded_pose_matrices_are_read_as_rigid_motions(tmp_path):
@@ -72,7 +96,7 @@ def test_rounded_pose_matrices_are_read_as_rigid_motions(tmp_path):
     skewed = pose.copy()
     skewed[:3, :3] *= 1.0 - 1.5e-4
     (tmp_path / "s" / "frame-000001.pose.txt").write_text("\n".join(" ".join(f"{v:.9g}" for v in r) for r in skewed))
-    read = load_sequence(tmp_path / "s").gt_poses[1]
+    read = load_sequence(tmp_path / "s", camera="shipped").gt_poses[1]  # the file's pose, not moved to colour
     assert np.allclose(read[:3, :3].T @ read[:3, :3], np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(read[:3, :3]), 1.0)
     assert np.allclose(read, pose, atol=1e-8)
 

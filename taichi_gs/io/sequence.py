@@ -2,7 +2,8 @@
 
 Own layout (written by ``taichi-gs synth``)::
 
-    SEQ/intrinsics.json   {"width", "height", "fx", "fy", "cx", "cy", "depth_scale"}
+    SEQ/intrinsics.json   {"width", "height", "fx", "fy", "cx", "cy", "depth_scale"}, and "depth_camera" for
+                          depth from its own camera, registered as it is read (``io.registration``)
     SEQ/frames.txt        "timestamp rgb/NAME.png depth/NAME.png" per frame
     SEQ/groundtruth.txt   optional TUM trajectory (camera-to-world), matched to frames by time
     SEQ/exposure.txt      optional "timestamp" + start and end pose (tx ty tz qx qy qz qw each)
@@ -27,6 +28,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import intrinsics_matrix, pose_from_rt, quat_to_rotmat, rotmat_to_quat
+from .registration import RegisterDepth, depth_camera_in
 from .trajectory import read_tum_rows, tum_rows_to_poses
 from . import jsonout
 from .transforms import FrameTransform
@@ -317,11 +319,14 @@ def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
         if missing:
             raise InputError(missing[0], "sharp image missing", "restore it or remove the sharp/ folder")
     sourced = root / "sourced.png"
+    depth_camera = depth_camera_in(root / "intrinsics.json")
     return Sequence(
         root, "taichi-gs", intrinsics, timestamps, rgb_paths, depth_paths,
         gt_poses=_ground_truth(root / "groundtruth.txt", timestamps),
         exposure_poses=_exposure(root / "exposure.txt", timestamps),
         sharp_paths=sharp_paths, sourced_path=sourced if sourced.is_file() else None,
+        transform=None if depth_camera is None else RegisterDepth(depth_camera, intrinsics.K(), intrinsics.width,
+                                                                   intrinsics.height),
     )
 
 

@@ -1,8 +1,19 @@
 """Microsoft 7-Scenes as distributed: ``frame-NNNNNN.color.png|jpg``, ``.depth.png`` (uint16 mm;
 0 and 65535 invalid) and ``.pose.txt`` (camera-to-world 4x4), either flat in the folder or in one
-``seq-NN/`` subfolder. Intrinsics: ``camera-intrinsics.txt`` (3x3) if present, else the dataset's
-published fx = fy = 585, cx = 320, cy = 240; intrinsics.json and the flags win over both.
-Frames are 1/30 s apart. Without pose files the sequence runs without ground truth.
+``seq-NN/`` subfolder. Frames are 1/30 s apart. Without pose files the sequence runs without ground truth.
+
+The colour and depth images come from the Kinect's two cameras and are not registered; the dataset
+gives one K, ``camera-intrinsics.txt`` (else the published fx = fy = 585, cx = 320, cy = 240), the
+depth camera's, and its poses (KinectFusion's) are the depth camera's. ``--camera`` chooses:
+
+- ``registered`` (default): the colour camera as fitted here (0.9 x the depth camera's focal length,
+  526.5 px for 585, the same principal point, 2.5 cm from the depth camera along x: depth edges
+  reprojected onto colour edges over 10 frames of RedKitchen,
+  edge correlation 0.17 -> 0.28; BENCHMARKS.md, "Depth-colour registration"); depth is moved into
+  it as it is read (``io.registration``) and the poses to it. intrinsics.json and the flags set the
+  colour camera; intrinsics.json's ``depth_camera`` replaces the depth camera and its offset.
+- ``shipped``: as distributed, colour and depth taken as one camera with the dataset's K (colour
+  then sits up to 16 px off its depth at the image edges, and the colour focal length reads 11% long).
 """
 
 from __future__ import annotations
@@ -13,13 +24,18 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
+from ...geometry import intrinsics_matrix
+from ..registration import DepthCamera, RegisterDepth, depth_camera_in, translation
 from ..sequence import Sequence
-from ..transforms import DropDepthAbove
+from ..transforms import DropDepthAbove, then
 from .common import NOMINAL_FPS, ReadOptions, intrinsics_with_defaults, numbered, pose_files, read_matrix
 
 NAME = "7scenes"
 COLOR = r"frame-(\d+)\.color\.(?:png|jpg)"
-DEFAULTS = {"fx": 585.0, "fy": 585.0, "cx": 320.0, "cy": 240.0, "depth_scale": 1000.0}
+DEFAULTS = {"fx": 585.0, "fy": 585.0, "cx": 320.0, "cy": 240.0, "depth_scale": 1000.0}  # the depth camera's
+COLOUR_FOCAL_RATIO = 526.5 / 585.0  # the colour camera's focal length over the depth camera's, fitted (module docstring)
+COLOUR_FROM_DEPTH = (-0.025, 0.0, 0.0)  # metres: X_colour = X_depth + this
+CAMERAS = ("registered", "shipped")
 NO_READING = 65535  # depth code for "no reading", besides 0
 
 
@@ -48,16 +64,29 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     missing = next((p for p in depth_paths if not p.is_file()), None)
     if missing is not None:
         raise InputError(missing, "depth image missing for its colour frame", "restore it or remove that frame's files")
-    defaults = dict(DEFAULTS)
+    camera = options.camera or CAMERAS[0]
+    if camera not in CAMERAS:
+        raise InputError(root, f"unknown --camera {camera!r} for 7-Scenes", f"use one of {', '.join(CAMERAS)}")
+    depth_K = dict(DEFAULTS)
     for place in (folder, root):
         if (place / "camera-intrinsics.txt").is_file():
             K = read_matrix(place / "camera-intrinsics.txt", (3, 3), "camera matrix", "write a 3x3 matrix, one row per line")
-            defaults.update(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
+            depth_K.update(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
             break
     rgb_paths = list(colors.values())
+    colour_K = {**depth_K, "fx": COLOUR_FOCAL_RATIO * depth_K["fx"], "fy": COLOUR_FOCAL_RATIO * depth_K["fy"]}
+    defaults = depth_K if camera == "shipped" else colour_K
     intrinsics = intrinsics_with_defaults(root, options.override, rgb_paths[0], defaults)
     timestamps = np.array(list(colors), dtype=float) / NOMINAL_FPS
     gt = pose_files([folder / f"{s}.pose.txt" for s in stems],
                     "restore it, or remove every .pose.txt file to run without ground truth")
-    return Sequence(root, NAME, intrinsics, timestamps, rgb_paths, depth_paths, gt_poses=gt, names=stems,
-                    transform=DropDepthAbove((NO_READING - 0.5) / intrinsics.depth_scale))
+    transform = DropDepthAbove((NO_READING - 0.5) / intrinsics.depth_scale)
+    if camera == "registered":
+        depth_camera = depth_camera_in(root / "intrinsics.json") or DepthCamera(intrinsics_matrix(depth_K["fx"], depth_K["fy"], depth_K["cx"], depth_K["cy"]),
+                           translation(COLOUR_FROM_DEPTH))
+        transform = then(transform, RegisterDepth(depth_camera, intrinsics.K(), intrinsics.width, intrinsics.height))
+        gt = depth_camera.moved_to_colour(gt)
+    sequence = Sequence(root, NAME, intrinsics, timestamps, rgb_paths, depth_paths, gt_poses=gt, names=stems,
+                        transform=transform)
+    sequence.source = {**sequence.source, "camera": camera}
+    return sequence
