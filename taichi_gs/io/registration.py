@@ -12,7 +12,7 @@ intrinsics.json may describe the depth camera (the top-level fx, fy, cx, cy stay
                      "colour_from_depth": [-0.025, 0, 0]}
 
 ``colour_from_depth`` is X_colour = R X_depth + t, given as t (metres, R = I) or as a 4x4 rigid
-matrix (rows). Ground truth in the taichi-gs and TUM layouts is the colour camera's.
+matrix (rows). The layout's ground truth stays what it is: the colour camera's.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+
 import numpy as np
 
 from ..errors import InputError
@@ -101,7 +102,7 @@ def depth_camera_in(json_path: Path) -> DepthCamera | None:
     return DepthCamera(intrinsics_matrix(fx, fy, cx, cy), rigid_transform(transform, json_path, fix))
 
 
-def translation(t) -> np.ndarray:
+def translation(t: np.ndarray | tuple[float, float, float]) -> np.ndarray:
     """The 4x4 rigid transform that moves points by ``t`` (3,)."""
     matrix = np.eye(4)
     matrix[:3, 3] = t

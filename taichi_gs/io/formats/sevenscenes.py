@@ -8,10 +8,10 @@ depth camera's, and its poses (KinectFusion's) are the depth camera's. ``--camer
 
 - ``registered`` (default): the colour camera as fitted here (0.9 x the depth camera's focal length,
   526.5 px for 585, the same principal point, 2.5 cm from the depth camera along x: depth edges
-  reprojected onto colour edges over 10 frames of RedKitchen,
-  edge correlation 0.17 -> 0.28; BENCHMARKS.md, "Depth-colour registration"); depth is moved into
-  it as it is read (``io.registration``) and the poses to it. intrinsics.json and the flags set the
-  colour camera; intrinsics.json's ``depth_camera`` replaces the depth camera and its offset.
+  reprojected onto colour edges over 10 frames of RedKitchen, edge correlation 0.17 -> 0.28;
+  BENCHMARKS.md, "Depth-colour registration"); depth is moved into it as it is read
+  (``io.registration``) and the poses to it. intrinsics.json and the flags set the colour camera;
+  intrinsics.json's ``depth_camera`` replaces the depth camera and its offset.
 - ``shipped``: as distributed, colour and depth taken as one camera with the dataset's K (colour
   then sits up to 16 px off its depth at the image edges, and the colour focal length reads 11% long).
 """
@@ -82,8 +82,9 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
                     "restore it, or remove every .pose.txt file to run without ground truth")
     transform = DropDepthAbove((NO_READING - 0.5) / intrinsics.depth_scale)
     if camera == "registered":
-        depth_camera = depth_camera_in(root / "intrinsics.json") or DepthCamera(intrinsics_matrix(depth_K["fx"], depth_K["fy"], depth_K["cx"], depth_K["cy"]),
-                           translation(COLOUR_FROM_DEPTH))
+        fitted = DepthCamera(intrinsics_matrix(depth_K["fx"], depth_K["fy"], depth_K["cx"], depth_K["cy"]),
+                             translation(COLOUR_FROM_DEPTH))
+        depth_camera = depth_camera_in(root / "intrinsics.json") or fitted
         transform = then(transform, RegisterDepth(depth_camera, intrinsics.K(), intrinsics.width, intrinsics.height))
         gt = depth_camera.moved_to_colour(gt)
     sequence = Sequence(root, NAME, intrinsics, timestamps, rgb_paths, depth_paths, gt_poses=gt, names=stems,
