@@ -139,15 +139,15 @@ def write_tum(folder: Path) -> dict:
 SEVEN_SCENES_COLOUR_FROM_DEPTH = np.array([-0.025, 0.0, 0.0])  # X_colour = X_depth + this
 
 
-def write_7scenes(folder: Path, seq: bool = False, shipped: bool = False) -> dict:
+def write_7scenes(folder: Path, seq: bool = False) -> dict:
     """Flat 7-Scenes folder with camera-intrinsics.txt (80x60), or seq-01/ at the published 640x480
     with no intrinsics file (the reader's defaults, fx = fy = 585, cx = 320, cy = 240). As the Kinect
     records it: depth from the depth camera with that K, colour from a camera with 0.9 x its focal
-    length 2.5 cm along x, pose files the depth camera's; ``shipped``: colour from the depth camera."""
+    length 2.5 cm along x, pose files the depth camera's."""
     K, size = (K_of(585.0, 585.0, 320.0, 240.0), (640, 480)) if seq else (SMALL_K, (80, 60))
-    K_colour = K if shipped else K_of(0.9 * K[0, 0], 0.9 * K[1, 1], K[0, 2], K[1, 2])
+    K_colour = K_of(0.9 * K[0, 0], 0.9 * K[1, 1], K[0, 2], K[1, 2])
     colour_from_depth = np.eye(4)
-    colour_from_depth[:3, 3] = 0.0 if shipped else SEVEN_SCENES_COLOUR_FROM_DEPTH
+    colour_from_depth[:3, 3] = SEVEN_SCENES_COLOUR_FROM_DEPTH
     frames = folder / "seq-01" if seq else folder
     frames.mkdir(parents=True)
     if not seq:
@@ -160,7 +160,7 @@ def write_7scenes(folder: Path, seq: bool = False, shipped: bool = False) -> dic
         cv2.imwrite(str(frames / f"frame-{i:06d}.color.png"), _bgr(color))
         cv2.imwrite(str(frames / f"frame-{i:06d}.depth.png"), raw)
         (frames / f"frame-{i:06d}.pose.txt").write_text(_matrix_text(depth_pose))
-    return {"K": K_colour, "size": size, "step": 1 / 1000, "resampled_depth": not shipped}
+    return {"K": K_colour, "size": size, "step": 1 / 1000, "resampled_depth": True}
 
 
 SCANNET_COLOR_K = K_of(150.0, 152.0, 81.0, 59.0)  # 160 x 120 colour
