@@ -8,7 +8,8 @@ depth camera's, and its poses (KinectFusion's) are the depth camera's. ``--camer
 
 - ``registered`` (default): the colour camera as fitted here (0.9 x the depth camera's focal length,
   526.5 px for 585, the same principal point, 2.5 cm from the depth camera along x: depth edges
-  reprojected onto colour edges over 10 frames of RedKitchen, edge correlation 0.17 -> 0.28;
+  reprojected onto colour edges over RedKitchen frames 0, 25, ..., 225 on grids of 5.9 px and 6 mm,
+  edge correlation 0.17 -> 0.28;
   BENCHMARKS.md, "Depth-colour registration"); depth is moved into it as it is read
   (``io.registration``) and the poses to it. intrinsics.json and the flags set the colour camera;
   intrinsics.json's ``depth_camera`` replaces the depth camera and its offset.
