@@ -146,8 +146,7 @@ def write_7scenes(folder: Path, seq: bool = False) -> dict:
     length 2.5 cm along x, pose files the depth camera's."""
     K, size = (K_of(585.0, 585.0, 320.0, 240.0), (640, 480)) if seq else (SMALL_K, (80, 60))
     K_colour = K_of(0.9 * K[0, 0], 0.9 * K[1, 1], K[0, 2], K[1, 2])
-    colour_from_depth = np.eye(4)
-    colour_from_depth[:3, 3] = SEVEN_SCENES_COLOUR_FROM_DEPTH
+    colour_from_depth = pose_from_rt(np.eye(3), SEVEN_SCENES_COLOUR_FROM_DEPTH)
     frames = folder / "seq-01" if seq else folder
     frames.mkdir(parents=True)
     if not seq:

@@ -12,14 +12,15 @@ import numpy as np
 import pytest
 
 from taichi_gs.errors import InputError
-from taichi_gs.io.registration import DepthCamera, RegisterDepth, translation
+from taichi_gs.geometry import pose_from_rt
+from taichi_gs.io.registration import DepthCamera, RegisterDepth
 from taichi_gs.io.sequence import load_sequence
 
 WALL, BOX = 2.5, 1.2
 BOX_HALF = (0.3, 0.2)  # metres, in x and y
 DEPTH_K = np.array([[70.0, 0.0, 39.5], [0.0, 70.0, 29.5], [0.0, 0.0, 1.0]])  # 80 x 60
 COLOUR_K = np.array([[63.0, 0.0, 40.0], [0.0, 63.0, 30.0], [0.0, 0.0, 1.0]])  # 80 x 60, another centre
-COLOUR_FROM_DEPTH = translation([-0.1, 0.0, 0.0])
+COLOUR_FROM_DEPTH = pose_from_rt(np.eye(3), np.array([-0.1, 0.0, 0.0]))
 
 
 def scene_depth(K: np.ndarray, centre_x: float, width: int = 80, height: int = 60) -> np.ndarray:

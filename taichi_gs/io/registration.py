@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import intrinsics_matrix
+from ..geometry import intrinsics_matrix, pose_from_rt
 from .transforms import FrameTransform, scale_matrix
 
 JSON_KEY = "depth_camera"
@@ -102,17 +102,10 @@ def depth_camera_in(json_path: Path) -> DepthCamera | None:
     return DepthCamera(intrinsics_matrix(fx, fy, cx, cy), rigid_transform(transform, json_path, fix))
 
 
-def translation(t: np.ndarray | tuple[float, float, float]) -> np.ndarray:
-    """The 4x4 rigid transform that moves points by ``t`` (3,)."""
-    matrix = np.eye(4)
-    matrix[:3, 3] = t
-    return matrix
-
-
 def rigid_transform(value: np.ndarray, where: Path, fix: str) -> np.ndarray:
     """A 4x4 rigid matrix from a translation (3,) or a 4x4 matrix; an error naming ``where`` otherwise."""
     if value.shape == (3,):
-        value = translation(value)
+        value = pose_from_rt(np.eye(3), value)
     if value.shape != (4, 4) or not np.all(np.isfinite(value)):
         raise InputError(where, f"{JSON_KEY} colour_from_depth has shape {value.shape}, not (3,) or (4, 4)", fix)
     R = value[:3, :3]

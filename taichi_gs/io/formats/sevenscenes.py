@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
-from ...geometry import intrinsics_matrix
-from ..registration import DepthCamera, RegisterDepth, depth_camera_in, translation
+from ...geometry import intrinsics_matrix, pose_from_rt
+from ..registration import DepthCamera, RegisterDepth, depth_camera_in
 from ..sequence import Sequence
 from ..transforms import DropDepthAbove, then
 from .common import NOMINAL_FPS, ReadOptions, intrinsics_with_defaults, numbered, pose_files, read_matrix
@@ -35,7 +35,7 @@ NAME = "7scenes"
 COLOR = r"frame-(\d+)\.color\.(?:png|jpg)"
 DEFAULTS = {"fx": 585.0, "fy": 585.0, "cx": 320.0, "cy": 240.0, "depth_scale": 1000.0}  # the depth camera's
 COLOUR_FOCAL_RATIO = 526.5 / 585.0  # the colour camera's focal length over the depth camera's, fitted (module docstring)
-COLOUR_FROM_DEPTH = (-0.025, 0.0, 0.0)  # metres: X_colour = X_depth + this
+COLOUR_FROM_DEPTH = np.array([-0.025, 0.0, 0.0])  # metres: X_colour = X_depth + this
 CAMERAS = ("registered", "shipped")
 NO_READING = 65535  # depth code for "no reading", besides 0
 
@@ -84,7 +84,7 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     transform = DropDepthAbove((NO_READING - 0.5) / intrinsics.depth_scale)
     if camera == "registered":
         fitted = DepthCamera(intrinsics_matrix(depth_K["fx"], depth_K["fy"], depth_K["cx"], depth_K["cy"]),
-                             translation(COLOUR_FROM_DEPTH))
+                             pose_from_rt(np.eye(3), COLOUR_FROM_DEPTH))
         depth_camera = depth_camera_in(root / "intrinsics.json") or fitted
         transform = then(transform, RegisterDepth(depth_camera, intrinsics.K(), intrinsics.width, intrinsics.height))
         gt = depth_camera.moved_to_colour(gt)
