@@ -13,12 +13,13 @@ Methods (each from identity at frame 0):
 - ours: the stage as shipped (verified candidates + robust pose graph)
 - ours no graph: the same run's verified pairs, chained (graph ablation, no extra cost)
 - ours no flow check: ours with candidates scored without their disagreement with the measured flow
+- ours no joint solve: ours without the joint candidate (flow terms plus point-to-plane, ``[pose] joint_solve``)
 - ours dense verification: ours with four times the verification grid (12000 points a direction)
 - ours no long edges: ours with ``[pose] graph_long_spans = []`` (no long edges between close cameras)
 - ours long edges every frame: ours with long edges from every frame (``graph_long_every = 1``), not every 4th
 - ours no verify: the flow -> ICP -> RGB-D odometry path behind the method's guards, no graph
 - method: the paper's path only (flow solve, then point-to-plane ICP), chained
-- cand:NAME: one candidate of ours' run (flow, icp, icp-prior, rgbd-icp, ...), chained (verification ablation)
+- cand:NAME: one candidate of ours' run (flow, joint, icp, icp-prior, rgbd-icp, ...), chained (verification ablation)
 - O3D hybrid: Open3D compute_rgbd_odometry (hybrid term, levels 20/10/5), pairs chained
 - O3D ICP: multi-scale point-to-plane ICP (the stage's settings) from identity, chained
 - O3D dense SLAM: Open3D's tensor frame-to-model tracking (voxel hashing, raycast), CPU
@@ -62,6 +63,7 @@ METHOD_ONLY = {"verify": False, "rgbd_refine": False, "icp_from_prior": False, "
 OURS = {
     "ours": {},
     "ours no flow check": {"verify_flow_weight": 0.0},
+    "ours no joint solve": {"joint_solve": False},
     "ours flow weight 0.2": {"verify_flow_weight": 0.2},
     "ours no long edges": {"graph_long_spans": ()},
     "ours long edges every frame": {"graph_long_every": 1},
@@ -70,7 +72,7 @@ OURS = {
     "ours no verify": {"verify": False, "pose_graph": False},
     "method": METHOD_ONLY,
 }
-DERIVED = ("ours no graph", "cand:flow", "cand:icp", "cand:rgbd-icp")
+DERIVED = ("ours no graph", "cand:flow", "cand:joint", "cand:icp", "cand:rgbd-icp")
 
 
 def run_ours(sequence, overrides: dict, work: Path, pair_caches: dict[str, Path]):

@@ -62,6 +62,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "icp_max_jump_deg": POSITIVE, "rgbd_iterations": _each(COUNT), "rgbd_depth_diff_max_m": POSITIVE,
         "voxel_size_m": POSITIVE,
         "verify_max_score": POSITIVE, "verify_margin": NON_NEGATIVE, "verify_min_overlap": FRACTION,
+        "joint_plane_weight": POSITIVE, "joint_iterations": COUNT, "joint_normal_smooth_px": NON_NEGATIVE,
         "verify_preference": ((lambda v: len(v) > 0 and set(v) <= set(CANDIDATE_NAMES)),
                               "a non-empty list of " + ", ".join(CANDIDATE_NAMES)),
         "verify_grid_points": _at_least(10), "verify_depth_sigma_m": POSITIVE,

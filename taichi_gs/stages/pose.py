@@ -29,7 +29,7 @@ import numpy as np
 from .. import profiling
 from ..errors import InputError
 from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, rigid_flow, to_gray_u8
-from ..geometry import invert, se3_log
+from ..geometry import backproject, invert, se3_log
 from ..icp import (ICPLevels, align, capped_voxel_down_sample, depth_cloud, open3d, prepare_icp,
                    reliable_depth_mask, rgbd_odometry)
 from ..io.atomic import write_text
@@ -38,10 +38,11 @@ from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
 from ..machine import available_cores
 from ..pose_graph import Edge, optimise
-from ..pose_verify import FlowCheck, FrameView, Verification, VerifySettings, flow_disagreement, frame_view, verify
+from ..pose_verify import (FlowCheck, FrameView, Verification, VerifySettings, depth_normals, flow_disagreement,
+                           frame_view, verify)
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
-from .pose_solver import SolverSettings, solve
+from .pose_solver import SolverSettings, solve, typical_residuals
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -51,11 +52,12 @@ NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError)
 
 # Estimate kinds recorded per pair.
 FROM_RGBD, FROM_ICP, FROM_FLOW, FROM_CONSTANT_VELOCITY = "rgbd", "icp", "flow", "constant-velocity"
+FROM_JOINT = "joint"
 # ICP starts closer than this (every entry of the 4 x 4 transform) give one RGB-D odometry run: ICP from the
 # flow solve and ICP from the prior ended within 1e-9 of each other in 2862 of 3926 stored pairs
 SAME_START_ATOL = 1e-9
 # Names of a pair's candidates (see _candidates): what started what.
-CANDIDATE_NAMES = ("rgbd-icp", "rgbd-icp-prior", "rgbd-flow", "icp", "icp-prior", "flow", "constant-velocity")
+CANDIDATE_NAMES = ("rgbd-icp", "rgbd-icp-prior", "rgbd-flow", "icp", "icp-prior", "joint", "flow", "constant-velocity")
 
 
 @dataclass(frozen=True)
@@ -110,11 +112,21 @@ class PoseConfig:
     # taichi_gs.pose_verify on both frames' depth and colour; the lowest score wins and sets "weak".
     # false: the method's path (flow solve, then ICP behind the fitness and jump guards).
     verify: bool = True
+    # [ours] one more candidate, the joint solve: the flow term L_F plus a point-to-plane term L_P on frame
+    # t+1's depth, in units of its noise (verify_depth_sigma_m + verify_depth_sigma_quadratic z^2), for
+    # joint_iterations steps from the flow solve. Each term is measured in its own typical residual there (the
+    # median; also its IRLS floor) and L_P weighs joint_plane_weight times L_F: depth pins the motion across
+    # the surfaces it sees, the flow the motion along them, where ICP slides, and where depth is noisy or
+    # far (its residuals large) the flow keeps more say
+    joint_solve: bool = True
+    joint_plane_weight: float = 16.0
+    joint_iterations: int = 10
+    joint_normal_smooth_px: float = 2.0
     icp_from_prior: bool = True  # also run ICP from the constant-velocity prior (a second candidate)
     verify_max_score: float = 0.5  # winner's score above it flags the pair weak
     # near-ties (within this fraction of the lowest score) go to the first candidate in this order
     verify_margin: float = 0.02
-    verify_preference: tuple = ("rgbd-icp", "rgbd-icp-prior", "icp", "icp-prior", "flow", "constant-velocity")
+    verify_preference: tuple = ("rgbd-icp", "rgbd-icp-prior", "icp", "icp-prior", "flow", "joint", "constant-velocity")
     verify_min_overlap: float = 0.2  # winner's overlap below it flags the pair weak
     # [ours] add this x the candidate's disagreement with the pair's measured optical flow (0..1, capped at
     # verify_flow_scale_px per pixel, at 320 px width) to its score, for pairs and graph edges alike: on plain
@@ -173,6 +185,15 @@ class PoseConfig:
             max_iterations=self.max_iterations, step_tolerance=self.step_tolerance,
             cost_tolerance=self.cost_tolerance, initial_damping=self.initial_damping,
         )
+
+    def joint_settings(self, flow_scale_px: float = 1.0, plane_scale: float = 1.0) -> SolverSettings:
+        """[ours] The joint solve's terms (L_F + L_P) and step cap, each term in units of its typical residual
+        (``flow_scale_px``, ``plane_scale``: see :func:`_add_joint`)."""
+        return dataclasses.replace(
+            self.solver_settings(with_all_terms=False), max_iterations=self.joint_iterations,
+            flow_floor_px=flow_scale_px, plane_floor=plane_scale,
+            plane_weight=self.joint_plane_weight * flow_scale_px / plane_scale,
+            plane_noise=(self.verify_depth_sigma_m, self.verify_depth_sigma_quadratic))
 
     def verify_settings(self) -> VerifySettings:
         return VerifySettings(
@@ -398,6 +419,8 @@ def start_pair(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, d
                                         config)
         if flow_T is not None:
             ahead.candidates[FROM_FLOW] = Candidate(flow_T)
+            if config.joint_solve:
+                _add_joint(ahead.candidates, samples, flow_T, config)
             if ahead.levels is not None:
                 _add_icp(ahead.candidates, FROM_ICP, ahead.levels, flow_T)
         if config.rgbd_refine and FROM_ICP in ahead.candidates:
@@ -467,8 +490,22 @@ def _candidates(ahead: PairStart, color_t: np.ndarray, depth_t: np.ndarray, colo
         for name in starts:
             if f"{FROM_RGBD}-{name}" not in found:
                 _add_odometry(found, name, runs, color_t, depth_t, color_t1, depth_t1, K, config)
-    order = [FROM_CONSTANT_VELOCITY, FROM_FLOW, FROM_ICP, f"{FROM_ICP}-prior"] + [f"{FROM_RGBD}-{n}" for n in starts]
+    order = [FROM_CONSTANT_VELOCITY, FROM_FLOW, FROM_JOINT, FROM_ICP, f"{FROM_ICP}-prior"] + [f"{FROM_RGBD}-{n}" for n in starts]
     return {name: found[name] for name in order if name in found}
+
+
+def _add_joint(candidates: dict[str, Candidate], samples: PairSamples, start: np.ndarray, config: PoseConfig) -> None:
+    """[ours] The joint solve (``PoseConfig.joint_settings``: flow plus point-to-plane) from ``start`` as the
+    candidate ``joint``, if it stays finite. Each term's scale is its median residual at ``start`` (at least
+    the method's flow floor and a tenth of the depth noise)."""
+    scales = typical_residuals(start, samples, config.joint_settings())
+    if len(scales) != 2 or not np.all(np.isfinite(scales)):
+        return  # no normals, or no point where both terms are defined
+    flow_scale, plane_scale = scales
+    settings = config.joint_settings(max(flow_scale, config.flow_floor_px), max(plane_scale, 0.1))
+    joint = solve(start, samples, settings)
+    if np.isfinite(joint.cost) and np.all(np.isfinite(joint.T)):
+        candidates[FROM_JOINT] = Candidate(joint.T)
 
 
 def _add_icp(candidates: dict[str, Candidate], name: str, levels: ICPLevels, init: np.ndarray) -> None:
@@ -585,7 +622,21 @@ def sample_pair(
         flow=flow.reshape(-1, 2)[index].astype(np.float64), intensity=gray_t.reshape(-1)[index].astype(np.float64),
         K=np.asarray(K, dtype=np.float64), target_gray=gray_t1, target_gradient=image_gradient(gray_t1),
         target_depth=depth_t1.astype(np.float64),
+        target_normals=_normals(depth_t1, K, config) if config.verify and config.joint_solve else None,
     )
+
+
+def _normals(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> np.ndarray:
+    """Unit normals of a frame's reliable depth (NaN where undefined), for the point-to-plane term: central
+    differences of the depth smoothed over the reliable pixels (Gaussian, ``joint_normal_smooth_px`` at 320 px
+    width), as ICP fits its normals to a neighbourhood rather than to single noisy samples."""
+    mask = config.reliable_depth(depth)
+    depth = np.where(mask, depth, 0.0).astype(np.float64)
+    sigma = config.joint_normal_smooth_px * depth.shape[1] / 320.0
+    if sigma > 0:
+        weight = cv2.GaussianBlur(mask.astype(np.float64), (0, 0), sigma)
+        depth = np.where(mask, cv2.GaussianBlur(depth, (0, 0), sigma) / np.maximum(weight, 1e-12), 0.0)
+    return depth_normals(backproject(depth, K), mask)
 
 
 def _refine_with_icp(result: RelativePose, depth_t: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,

@@ -32,6 +32,7 @@ class PairSamples:
     target_gray: np.ndarray
     target_gradient: np.ndarray
     target_depth: np.ndarray
+    target_normals: np.ndarray | None = None  # H x W x 3 unit normals of frame t+1 (NaN: none), for L_P
 
 
 @dataclass(frozen=True)
@@ -161,6 +162,15 @@ def baseline_distance(points: np.ndarray, direction: np.ndarray) -> tuple[np.nda
     return u_norm / c_norm, d_points, d_direction
 
 
+def target_points(w: Warp, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frame t+1's surface points P_j = D_t+1(p_j) K^-1 [p_j, 1] where the warp lands, and dP_j / dp_j (N x 3 x 2)."""
+    rays = np.stack([(w.pixels[:, 0] - K[0, 2]) / K[0, 0], (w.pixels[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(w.pixels))], -1)
+    dP_dpixel = rays[:, :, None] * w.target_depth_gradient[:, None, :]
+    dP_dpixel[:, 0, 0] += w.target_depth / K[0, 0]
+    dP_dpixel[:, 1, 1] += w.target_depth / K[1, 1]
+    return w.target_depth[:, None] * rays, dP_dpixel
+
+
 def depth_consistency_residuals(w: Warp, samples: PairSamples, min_baseline: float) -> Residuals | None:
     """L_C: r_i = h_i - h_j, metres; minimised as sum |r_i|. None when the baseline is too short.
 
@@ -177,15 +187,30 @@ def depth_consistency_residuals(w: Warp, samples: PairSamples, min_baseline: flo
     h_i, _, dh_i_dx = baseline_distance(samples.points, x)
     dx_ddelta = np.hstack([-R.T, np.zeros((3, 3))])  # x' = -R^T (t + rho): rotation drops out
 
-    K = samples.K
-    rays = np.stack([(w.pixels[:, 0] - K[0, 2]) / K[0, 0], (w.pixels[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(w.pixels))], -1)
-    P_j = w.target_depth[:, None] * rays
+    P_j, dP_dpixel = target_points(w, samples.K)
     h_j, dh_j_dP, dh_j_dt = baseline_distance(P_j, t)
     dt_ddelta = np.hstack([np.eye(3), -cross_matrices(t[None])[0]])  # t' = t + rho + phi x t
-    dP_dpixel = rays[:, :, None] * w.target_depth_gradient[:, None, :]
-    dP_dpixel[:, 0, 0] += w.target_depth / K[0, 0]
-    dP_dpixel[:, 1, 1] += w.target_depth / K[1, 1]
     dh_j_dpixel = np.einsum("ni,nij->nj", dh_j_dP, dP_dpixel)
     dh_j = dh_j_dt @ dt_ddelta + np.einsum("nk,nkj->nj", dh_j_dpixel, w.pixel_jacobian)
     jacobian = (dh_i_dx @ dx_ddelta - dh_j)[:, None, :]
     return Residuals((h_i - h_j)[:, None], jacobian)
+
+
+def point_to_plane_residuals(w: Warp, samples: PairSamples, noise: tuple[float, float] = (1.0, 0.0)) -> Residuals:
+    """[ours] L_P: r_i = n_j . (Q_i - P_j) / sigma(z_j), with P_j = D_t+1(p_j) K^-1 [p_j, 1], n_j frame t+1's
+    normal at the pixel nearest p_j (held fixed, as point-to-plane ICP holds it) and the depth noise
+    sigma(z) = noise[0] + noise[1] z^2 (metres; held fixed too: a weight); minimised as sum |r_i|.
+    Where frame t+1 has no normal the residual and its Jacobian are 0. Depth pins the motion across the
+    surfaces it sees; the flow terms keep the motion along them, where depth alone lets ICP slide."""
+    h, wd = samples.target_depth.shape
+    u = np.clip(np.round(np.nan_to_num(w.pixels[:, 0])).astype(np.int64), 0, wd - 1)
+    v = np.clip(np.round(np.nan_to_num(w.pixels[:, 1])).astype(np.int64), 0, h - 1)
+    normals = samples.target_normals[v, u]
+    has_normal = np.all(np.isfinite(normals), axis=1)
+    scale = 1.0 / (noise[0] + noise[1] * np.square(w.target_depth))
+    normals = np.where(has_normal[:, None], normals * scale[:, None], 0.0)
+    P_j, dP_dpixel = target_points(w, samples.K)
+    values = np.where(has_normal, np.sum(normals * (w.Q - P_j), axis=1), 0.0)
+    dQ = np.concatenate([np.broadcast_to(np.eye(3), (len(w.Q), 3, 3)), -cross_matrices(w.Q)], axis=2)
+    jacobian = np.einsum("ni,nij->nj", normals, dQ - dP_dpixel @ w.pixel_jacobian)
+    return Residuals(np.nan_to_num(values)[:, None], np.nan_to_num(jacobian)[:, None, :])

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import se3_exp
-from .pose_losses import PairSamples, Residuals, depth_consistency_residuals, flow_residuals, photometric_residuals, warp
+from .pose_losses import (PairSamples, Residuals, depth_consistency_residuals, flow_residuals, photometric_residuals,
+                          point_to_plane_residuals, warp)
 
 
 @dataclass(frozen=True)
@@ -26,6 +27,9 @@ class SolverSettings:
     step_tolerance: float
     cost_tolerance: float
     initial_damping: float
+    plane_weight: float = 0.0  # [ours] L_P's weight; needs the samples' target normals
+    plane_floor: float = 1.0  # in units of L_P's residual (depth noise sigmas)
+    plane_noise: tuple = (1.0, 0.0)  # sigma(z) = a + b z^2 metres: L_P's residuals are divided by it
 
 
 @dataclass(frozen=True)
@@ -58,7 +62,22 @@ def active_terms(T: np.ndarray, samples: PairSamples, settings: SolverSettings) 
         consistency = depth_consistency_residuals(w, samples, settings.min_baseline_m)
         if consistency is not None:
             terms.append((consistency, settings.depth_consistency_weight, settings.depth_floor_m))
+    if settings.plane_weight > 0 and samples.target_normals is not None:
+        terms.append((point_to_plane_residuals(w, samples, settings.plane_noise), settings.plane_weight,
+                      settings.plane_floor))
     return w.valid, terms
+
+
+def typical_residuals(T: np.ndarray, samples: PairSamples, settings: SolverSettings) -> list[float]:
+    """Median residual norm of each active term at T (in :func:`active_terms`' order) over the valid points
+    where the term is defined (non-zero); NaN for a term with none."""
+    valid, terms = active_terms(T, samples, settings)
+    medians = []
+    for residuals, _, _ in terms:
+        norms = residuals.norms()[valid]
+        norms = norms[norms > 0]
+        medians.append(float(np.median(norms)) if len(norms) else float("nan"))
+    return medians
 
 
 def linearise(T: np.ndarray, samples: PairSamples, settings: SolverSettings) -> Linearisation:
