@@ -124,3 +124,36 @@ def test_a_still_camera_scores_no_worse_than_a_half_pixel_slide_along_a_plain_wa
     half_pixel = se3_exp(np.array([0.5 * 1.3 / K[0, 0], 0.0, 0.0, 0.0, 0.0, 0.0]))
     still, slid = verify(np.eye(4), *views, K), verify(half_pixel, *views, K)
     assert still.geometric < 1.05 * slid.geometric, (still.geometric, slid.geometric)  # 1.23x before the fix
+
+
+def test_graph_edge_gets_a_joint_candidate_on_its_own_flows(monkeypatch):
+    """[ours] An extra graph edge from chained poses that slid 2.5 cm along the back wall: its joint candidate
+    (flow plus point-to-plane on the edge's flows, from the chain) lands on the true motion; without
+    ``graph_joint`` (the default) there is none."""
+    from test_pose import SceneSequence
+
+    from taichi_gs.stages import pose as pose_stage
+
+    sequence = SceneSequence(np.stack([START, START @ invert(MOTION)]))
+    K = sequence.intrinsics.K()
+    slid_chain = np.stack([START, START @ invert(SLIDE @ MOTION)])
+    seen = {}
+    original = pose_stage._choose
+
+    def recording(candidates, *args, **kwargs):
+        seen.clear()
+        seen.update(candidates)
+        return original(candidates, *args, **kwargs)
+
+    monkeypatch.setattr(pose_stage, "_choose", recording)
+    config = PoseConfig(graph_joint=True)
+    edge = pose_stage._graph_edge(pose_stage.FrameCache(sequence, K, config), 0, 1, slid_chain, K, config, "skip", np.inf)
+    assert _error_mm(seen["chain"].transform) > 20.0
+    assert _error_mm(seen["rgbd-chain"].transform) > 1.0  # RGB-D odometry from the chain: 3.2 mm measured
+    assert _error_mm(seen["joint-chain"].transform) < 0.5  # 0.14 mm measured
+    assert edge is not None and edge.estimate == "joint-chain"
+
+    no_joint = PoseConfig()
+    assert no_joint.pair_key() == config.pair_key()  # a graph setting: the pairs stay cached
+    pose_stage._graph_edge(pose_stage.FrameCache(sequence, K, no_joint), 0, 1, slid_chain, K, no_joint, "skip", np.inf)
+    assert "joint-chain" not in seen

@@ -145,6 +145,11 @@ class PoseConfig:
     pose_graph: bool = True
     graph_skips: tuple = (2, 3)
     graph_icp: bool = False
+    # [ours] the extra edges also get a joint candidate (joint_solve's settings, from the chained poses, on the
+    # edge's flows), so an edge along a plain wall is not only RGB-D odometry, which slides there. Off: plain
+    # walls gain (synth plain hand-held 4.9 -> 1.7 mm), TUM fr1_rpy loses (10.8 -> 13.8; BENCHMARKS, "joint
+    # candidate on the graph's edges")
+    graph_joint: bool = False
     # [ours] RGB-D odometry iterations per pyramid level of the extra edges, which start from the chained
     # poses (the pairs' own odometry keeps rgbd_iterations)
     graph_rgbd_iterations: tuple = (20, 10, 5)
@@ -214,8 +219,8 @@ class PoseConfig:
 
 
 # Fields that do not change a pair's own result (excluded from the pair cache's key).
-_NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_rgbd_iterations",
-                    "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m", "graph_info_max_points",
+_NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_joint",
+                    "graph_rgbd_iterations", "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m", "graph_info_max_points",
                     "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every", "loop_max_distance_m",
                     "loop_max_angle_deg", "graph_long_spans", "graph_long_every", "threads"}
 
@@ -494,9 +499,10 @@ def _candidates(ahead: PairStart, color_t: np.ndarray, depth_t: np.ndarray, colo
     return {name: found[name] for name in order if name in found}
 
 
-def _add_joint(candidates: dict[str, Candidate], samples: PairSamples, start: np.ndarray, config: PoseConfig) -> None:
+def _add_joint(candidates: dict[str, Candidate], samples: PairSamples, start: np.ndarray, config: PoseConfig,
+               name: str = FROM_JOINT) -> None:
     """[ours] The joint solve (``PoseConfig.joint_settings``: flow plus point-to-plane) from ``start`` as the
-    candidate ``joint``, if it stays finite. Each term's scale is its median residual at ``start`` (at least
+    candidate ``name``, if it stays finite. Each term's scale is its median residual at ``start`` (at least
     the method's flow floor and a tenth of the depth noise)."""
     scales = typical_residuals(start, samples, config.joint_settings())
     if len(scales) != 2 or not np.all(np.isfinite(scales)):
@@ -505,7 +511,7 @@ def _add_joint(candidates: dict[str, Candidate], samples: PairSamples, start: np
     settings = config.joint_settings(max(flow_scale, config.flow_floor_px), max(plane_scale, 0.1))
     joint = solve(start, samples, settings)
     if np.isfinite(joint.cost) and np.all(np.isfinite(joint.T)):
-        candidates[FROM_JOINT] = Candidate(joint.T)
+        candidates[name] = Candidate(joint.T)
 
 
 def _add_icp(candidates: dict[str, Candidate], name: str, levels: ICPLevels, init: np.ndarray) -> None:
@@ -895,11 +901,14 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
             candidates[f"rgbd-{name}"] = Candidate(refined)
     views = (frames.view(i), frames.view(j))
     check = None
-    if config.verify_flow_weight > 0:
-        check = _flow_check(*seeded_flows(frames.gray(i), frames.gray(j), depth_i, depth_j, K, init,
-                                          config.flow_preset))
-    chosen = _choose(candidates, views, K, config, ("rgbd-icp-chain", "rgbd-chain", "icp-chain", "chain"),
-                     flow_check=check)
+    if config.verify_flow_weight > 0 or config.graph_joint:
+        flows = seeded_flows(frames.gray(i), frames.gray(j), depth_i, depth_j, K, init, config.flow_preset)
+        check = _flow_check(*flows) if config.verify_flow_weight > 0 else None
+        if config.graph_joint:
+            samples = sample_pair(color_i, depth_i, color_j, depth_j, K, *flows, config.reliable_depth(depth_i), config)
+            _add_joint(candidates, samples, init, config, name=f"{FROM_JOINT}-chain")
+    chosen = _choose(candidates, views, K, config,
+                     ("rgbd-icp-chain", "rgbd-chain", "icp-chain", f"{FROM_JOINT}-chain", "chain"), flow_check=check)
     if chosen.weak or chosen.estimate == "chain" or not chosen.score <= max_score:
         return None
     return Edge(i, j, chosen.transform, _information(frames, i, j, chosen.transform, config), kind,
