@@ -146,9 +146,9 @@ class PoseConfig:
     graph_skips: tuple = (2, 3)
     graph_icp: bool = False
     # [ours] the extra edges also get a joint candidate (joint_solve's settings, from the chained poses, on the
-    # edge's flows), so an edge along a plain wall is not only RGB-D odometry, which slides there. Off: plain
-    # walls gain (synth plain hand-held 4.9 -> 1.7 mm), TUM fr1_rpy loses (10.8 -> 13.8; BENCHMARKS, "joint
-    # candidate on the graph's edges")
+    # edge's flows), so an edge along a plain wall is not only RGB-D odometry, which slides there. Off by
+    # default: on, plain walls gain (synth plain hand-held 4.9 -> 1.7 mm) and TUM fr1_rpy loses (10.8 -> 13.8;
+    # BENCHMARKS, "The joint candidate on the graph's extra edges")
     graph_joint: bool = False
     # [ours] RGB-D odometry iterations per pyramid level of the extra edges, which start from the chained
     # poses (the pairs' own odometry keeps rgbd_iterations)
@@ -220,7 +220,8 @@ class PoseConfig:
 
 # Fields that do not change a pair's own result (excluded from the pair cache's key).
 _NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_joint",
-                    "graph_rgbd_iterations", "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m", "graph_info_max_points",
+                    "graph_rgbd_iterations", "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m",
+                    "graph_info_max_points",
                     "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every", "loop_max_distance_m",
                     "loop_max_angle_deg", "graph_long_spans", "graph_long_every", "threads"}
 
@@ -483,9 +484,10 @@ def _flow_solve(samples: PairSamples, config: PoseConfig) -> tuple[np.ndarray | 
 
 def _candidates(ahead: PairStart, color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray,
                 depth_t1: np.ndarray, K: np.ndarray, prior: np.ndarray, config: PoseConfig) -> dict[str, Candidate]:
-    """[ours] Every candidate of a pair: the flow solve, the prior, ICP from each (``icp_from_prior``),
-    and RGB-D odometry from each ICP result (``rgbd_refine``); ``ahead`` holds those that did not need the
-    prior. Names say what started what; they are listed in that order (prior, flow, ICP, odometry)."""
+    """[ours] Every candidate of a pair: the flow solve, the joint solve from it (``joint_solve``), the prior,
+    ICP from the flow solve and the prior (``icp_from_prior``), and RGB-D odometry from each ICP result
+    (``rgbd_refine``); ``ahead`` holds those that did not need the prior. Names say what started what; they are
+    listed in that order (prior, flow, joint, ICP, odometry)."""
     found = {FROM_CONSTANT_VELOCITY: Candidate(np.array(prior, dtype=np.float64)), **ahead.candidates}
     runs = list(ahead.odometry_runs)
     if ahead.levels is not None and (config.icp_from_prior or ahead.flow_T is None):
@@ -495,7 +497,8 @@ def _candidates(ahead: PairStart, color_t: np.ndarray, depth_t: np.ndarray, colo
         for name in starts:
             if f"{FROM_RGBD}-{name}" not in found:
                 _add_odometry(found, name, runs, color_t, depth_t, color_t1, depth_t1, K, config)
-    order = [FROM_CONSTANT_VELOCITY, FROM_FLOW, FROM_JOINT, FROM_ICP, f"{FROM_ICP}-prior"] + [f"{FROM_RGBD}-{n}" for n in starts]
+    order = [FROM_CONSTANT_VELOCITY, FROM_FLOW, FROM_JOINT, FROM_ICP, f"{FROM_ICP}-prior"]
+    order += [f"{FROM_RGBD}-{n}" for n in starts]
     return {name: found[name] for name in order if name in found}
 
 
