@@ -29,7 +29,7 @@ import numpy as np
 
 from .geometry import backproject, project, transform
 from .icp import reliable_depth_mask
-from .stages.pose_losses import bilinear, bilinear_depth
+from .stages.pose_losses import bilinear, bilinear_depth, nearest_pixel
 
 
 MEAN_BILINEAR_SQUARES = 4.0 / 9.0  # the mean of sum w^2 over uniform sub-pixel positions: (2/3)^2
@@ -158,8 +158,7 @@ def _direction(T: np.ndarray, source: FrameView, target: FrameView, K: np.ndarra
     pixels = np.stack([K[0, 0] * Q[:, 0] / z + K[0, 2], K[1, 1] * Q[:, 1] / z + K[1, 2]], axis=-1)
     pixels[~front] = np.nan
     depth, _, valid = bilinear_depth(target.depth, pixels)
-    u = np.clip(np.round(np.nan_to_num(pixels[:, 0])).astype(np.int64), 0, target.depth.shape[1] - 1)
-    v = np.clip(np.round(np.nan_to_num(pixels[:, 1])).astype(np.int64), 0, target.depth.shape[0] - 1)
+    u, v = nearest_pixel(pixels, target.depth.shape)
     normal = target.normals[v, u]
     valid &= front & np.all(np.isfinite(normal), axis=1)
     m = int(valid.sum())

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import intrinsics_matrix, pose_from_rt
+from ..geometry import backproject, intrinsics_matrix, pose_from_rt, project, transform
 from .transforms import FrameTransform, scale_matrix
 
 JSON_KEY = "depth_camera"
@@ -64,14 +64,10 @@ class RegisterDepth(FrameTransform):
         if repeat > 1:
             depth = np.repeat(np.repeat(depth, repeat, axis=0), repeat, axis=1)
             K = scale_matrix(K, repeat, repeat)
-        v, u = np.nonzero(depth > 0)
-        z = depth[v, u].astype(np.float64)
-        points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
-        moved = points @ self.camera.colour_from_depth[:3, :3].T + self.camera.colour_from_depth[:3, 3]
+        moved = transform(self.camera.colour_from_depth, backproject(depth, K)[depth > 0])
         moved = moved[moved[:, 2] > 1e-6]
         zc = moved[:, 2]
-        uc = np.rint(self.colour_K[0, 0] * moved[:, 0] / zc + self.colour_K[0, 2]).astype(np.int64)
-        vc = np.rint(self.colour_K[1, 1] * moved[:, 1] / zc + self.colour_K[1, 2]).astype(np.int64)
+        uc, vc = np.rint(project(moved, self.colour_K)).astype(np.int64).T
         inside = (uc >= 0) & (uc < self.width) & (vc >= 0) & (vc < self.height)
         nearest = np.full(self.width * self.height, np.inf)
         np.minimum.at(nearest, vc[inside] * self.width + uc[inside], zc[inside])

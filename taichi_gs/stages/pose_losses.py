@@ -162,6 +162,14 @@ def baseline_distance(points: np.ndarray, direction: np.ndarray) -> tuple[np.nda
     return u_norm / c_norm, d_points, d_direction
 
 
+def nearest_pixel(pixels: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Column and row (each N) of the image pixel nearest each of N pixel coordinates, clipped into an
+    H x W ``shape`` (non-finite coordinates go to 0)."""
+    u = np.clip(np.round(np.nan_to_num(pixels[:, 0])).astype(np.int64), 0, shape[1] - 1)
+    v = np.clip(np.round(np.nan_to_num(pixels[:, 1])).astype(np.int64), 0, shape[0] - 1)
+    return u, v
+
+
 def target_points(w: Warp, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Frame t+1's surface points P_j = D_t+1(p_j) K^-1 [p_j, 1] where the warp lands, and dP_j / dp_j (N x 3 x 2)."""
     rays = np.stack([(w.pixels[:, 0] - K[0, 2]) / K[0, 0], (w.pixels[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(w.pixels))], -1)
@@ -202,9 +210,7 @@ def point_to_plane_residuals(w: Warp, samples: PairSamples, noise: tuple[float, 
     sigma(z) = noise[0] + noise[1] z^2 (metres; held fixed too: a weight); minimised as sum |r_i|.
     Where frame t+1 has no normal the residual and its Jacobian are 0. Depth pins the motion across the
     surfaces it sees; the flow terms keep the motion along them, where depth alone lets ICP slide."""
-    h, wd = samples.target_depth.shape
-    u = np.clip(np.round(np.nan_to_num(w.pixels[:, 0])).astype(np.int64), 0, wd - 1)
-    v = np.clip(np.round(np.nan_to_num(w.pixels[:, 1])).astype(np.int64), 0, h - 1)
+    u, v = nearest_pixel(w.pixels, samples.target_depth.shape)
     normals = samples.target_normals[v, u]
     has_normal = np.all(np.isfinite(normals), axis=1)
     scale = 1.0 / (noise[0] + noise[1] * np.square(w.target_depth))
