@@ -128,6 +128,7 @@ def test_tum_undistortion_matches_opencv(tmp_path):
     folder, _ = _write("tum", tmp_path)
     seq = load_sequence(folder)
     assert seq.source.get("camera") == "fr1"
+    assert seq.source.get("depth_latency_s") == 0.015  # the fr1 preset pairs by depth stamps minus its latency
     raw = cv2.imread(str(seq.rgb_paths[0]), cv2.IMREAD_COLOR)
     expected = cv2.cvtColor(cv2.undistort(raw, TUM_FR1["K"], TUM_FR1["distortion"]), cv2.COLOR_BGR2RGB) / 255.0
     mx, my = cv2.initUndistortRectifyMap(TUM_FR1["K"], TUM_FR1["distortion"], None, TUM_FR1["K"], (640, 480), cv2.CV_32FC1)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from taichi_gs.errors import InputError
-from taichi_gs.io.sequence import IntrinsicsOverride, associate, load_sequence, typical_offsets
+from taichi_gs.io.sequence import IntrinsicsOverride, _open_tum_layout, associate, load_sequence, typical_offsets
 from conftest import write_frame_images, write_intrinsics
 
 
@@ -68,9 +68,9 @@ def test_pairing_of_synchronised_streams_is_unchanged():
     assert associate(colour, depth, 0.02, typical_offsets(colour, depth, closest)) == closest
 
 
-def test_tum_reader_pairs_each_colour_frame_with_the_depth_frame_on_the_common_side(tmp_path):
-    colour, depth = half_frame_streams(12)
-    folder = tmp_path / "tum"
+def half_frame_folder(folder: Path, frames: int = 12) -> Path:
+    """A TUM folder of :func:`half_frame_streams`: depth frame i is stamped 15.5 ms before colour frame i."""
+    colour, depth = half_frame_streams(frames)
     rgb_lines, depth_lines = [], []
     for i in range(len(depth)):
         rgb, depth_name = write_frame_images(folder, i)
@@ -80,8 +80,23 @@ def test_tum_reader_pairs_each_colour_frame_with_the_depth_frame_on_the_common_s
     (folder / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
     (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
     write_intrinsics(folder)
-    seq = load_sequence(folder)
-    assert [p.name for p in seq.depth_paths] == [f"{i:06d}.png" for i in range(len(colour))]
+    return folder
+
+
+def test_tum_reader_pairs_each_colour_frame_with_the_depth_frame_on_the_common_side(tmp_path):
+    seq = load_sequence(half_frame_folder(tmp_path / "tum"))
+    assert [p.name for p in seq.depth_paths] == [f"{i:06d}.png" for i in range(12)]
+
+
+def test_a_depth_latency_pairs_each_colour_frame_with_the_depth_frame_after_it(tmp_path):
+    """Depth stamped 15.5 ms before and 17.8 ms after each colour frame: a depth frame that shows the moment 15 ms
+    before its stamp is nearly simultaneous with the colour frame before it, so with that latency every colour
+    frame takes the next depth frame, still one depth interval apart."""
+    folder = half_frame_folder(tmp_path / "tum")
+    seq = _open_tum_layout(folder, IntrinsicsOverride(), 0.02, depth_latency=0.015)
+    assert [p.name for p in seq.depth_paths] == [f"{i:06d}.png" for i in range(1, 13)]
+    assert [p.name for p in _open_tum_layout(folder, IntrinsicsOverride(), 0.02).depth_paths] == \
+        [f"{i:06d}.png" for i in range(12)]
 
 
 def test_cli_flags_override_intrinsics(own_layout):

@@ -334,7 +334,11 @@ def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
 OFFSET_WINDOW = 31
 
 
-def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: float) -> Sequence:
+def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: float,
+                     depth_latency: float = 0.0) -> Sequence:
+    """A TUM folder's colour frames, each with a depth frame (see :func:`associate` and :func:`typical_offsets`).
+    ``depth_latency``: seconds by which a depth frame's stamp trails the moment its depth shows; colour stamps are
+    matched with depth stamps minus it."""
     rgb_list, depth_list = root / "rgb.txt", root / "depth.txt"
     for path in (rgb_list, depth_list):
         if not path.is_file():
@@ -345,6 +349,7 @@ def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: f
     depth_times = np.array([float(r[0]) for r in depth_rows])
     _check_increasing(rgb_list, rgb_times)
     _check_increasing(depth_list, depth_times)
+    depth_times = depth_times - depth_latency
     matches = associate(rgb_times, depth_times, max_difference)
     if matches:
         matches = associate(rgb_times, depth_times, max_difference, typical_offsets(rgb_times, depth_times, matches))

@@ -19,9 +19,16 @@ from ..transforms import Undistort, then
 from .common import ReadOptions, json_keys
 
 NAME = "tum"
+# [ours] Seconds by which a Freiburg 1 depth frame's stamp trails the moment its depth shows, measured on fr1_rpy:
+# depth edges sit where the colour frame saw them about 15 ms before the depth stamp (BENCHMARKS, "TUM's depth
+# frames show an earlier moment than their stamps"). Colour frames are paired with depth stamps minus it, so where
+# the two streams run half a frame apart a colour frame takes the depth frame after it, not the one before.
+# fr2 and fr3 are not measured and keep 0.
+FR1_DEPTH_LATENCY_S = 0.015
 # https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats#intrinsic_camera_calibration_of_the_kinect
 CAMERAS: dict[str, dict[str, object]] = {
-    "fr1": {"fx": 517.3, "fy": 516.5, "cx": 318.6, "cy": 255.3, "distortion": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)},
+    "fr1": {"fx": 517.3, "fy": 516.5, "cx": 318.6, "cy": 255.3, "distortion": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+            "depth_latency_s": FR1_DEPTH_LATENCY_S},
     "fr2": {"fx": 520.9, "fy": 521.0, "cx": 325.1, "cy": 249.7, "distortion": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)},
     "fr3": {"fx": 535.4, "fy": 539.2, "cx": 320.1, "cy": 247.6, "distortion": (0.0, 0.0, 0.0, 0.0, 0.0)},
 }
@@ -53,11 +60,12 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     if camera is not None:
         values = {k: float(v) for k, v in CAMERAS[camera].items() if k in PINHOLE}
         override = IntrinsicsOverride(**{**values, **flags})
-    sequence = _open_tum_layout(root, override, options.max_time_difference)
+    latency = float(CAMERAS[camera].get("depth_latency_s", 0.0)) if camera is not None else 0.0
+    sequence = _open_tum_layout(root, override, options.max_time_difference, latency)
     if camera is not None:
         distortion = np.array(CAMERAS[camera]["distortion"], dtype=float)
         intr = sequence.intrinsics
         if np.any(distortion != 0):
             sequence.transform = then(sequence.transform, Undistort(intr.K(), distortion, intr.width, intr.height))
-        sequence.source = {**sequence.source, "camera": camera}
+        sequence.source = {**sequence.source, "camera": camera, **({"depth_latency_s": latency} if latency else {})}
     return sequence
