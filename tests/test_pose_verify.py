@@ -128,8 +128,8 @@ def test_a_still_camera_scores_no_worse_than_a_half_pixel_slide_along_a_plain_wa
 
 def test_graph_edge_gets_a_joint_candidate_on_its_own_flows(monkeypatch):
     """[ours] An extra graph edge from chained poses that slid 2.5 cm along the back wall: its joint candidate
-    (flow plus point-to-plane on the edge's flows, from the chain) lands on the true motion; without
-    ``graph_joint`` (the default) there is none."""
+    (flow plus point-to-plane on the edge's flows, from the chain, the default) lands on the true motion; with
+    ``graph_joint = false`` there is none."""
     from test_pose import SceneSequence
 
     from taichi_gs.stages import pose as pose_stage
@@ -146,14 +146,14 @@ def test_graph_edge_gets_a_joint_candidate_on_its_own_flows(monkeypatch):
         return original(candidates, *args, **kwargs)
 
     monkeypatch.setattr(pose_stage, "_choose", recording)
-    config = PoseConfig(graph_joint=True)
+    config = PoseConfig()
     edge = pose_stage._graph_edge(pose_stage.FrameCache(sequence, K, config), 0, 1, slid_chain, K, config, "skip", np.inf)
     assert _error_mm(seen["chain"].transform) > 20.0
     assert _error_mm(seen["rgbd-chain"].transform) > 1.0  # RGB-D odometry from the chain: 3.2 mm measured
     assert _error_mm(seen["joint-chain"].transform) < 0.5  # 0.14 mm measured
     assert edge is not None and edge.estimate == "joint-chain"
 
-    no_joint = PoseConfig()
+    no_joint = PoseConfig(graph_joint=False)
     assert no_joint.pair_key() == config.pair_key()  # a graph setting: the pairs stay cached
     pose_stage._graph_edge(pose_stage.FrameCache(sequence, K, no_joint), 0, 1, slid_chain, K, no_joint, "skip", np.inf)
     assert "joint-chain" not in seen

@@ -146,10 +146,11 @@ class PoseConfig:
     graph_skips: tuple = (2, 3)
     graph_icp: bool = False
     # [ours] the extra edges also get a joint candidate (joint_solve's settings, from the chained poses, on the
-    # edge's flows), so an edge along a plain wall is not only RGB-D odometry, which slides there. Off by
-    # default: on, plain walls gain (synth plain hand-held 4.9 -> 1.7 mm) and TUM fr1_rpy loses (10.8 -> 13.8;
-    # BENCHMARKS, "The joint candidate on the graph's extra edges")
-    graph_joint: bool = False
+    # edge's flows), so an edge along a plain wall is not only RGB-D odometry, which slides there. On 18
+    # synthetic 60-frame sequences ATE sums 53.2 -> 45.7 mm (plain hand-held 9.5 -> 3.5, 4.9 -> 1.7; corridor
+    # hand-held 3.4 -> 5.2), on eight real slices within +-0.6 mm but one (+2.0 mm, RPE rotation 0.91 -> 0.53 deg),
+    # for about 1.2x stage 1's time (BENCHMARKS, "The joint candidate on the graph's edges, on by default")
+    graph_joint: bool = True
     # [ours] RGB-D odometry iterations per pyramid level of the extra edges, which start from the chained
     # poses (the pairs' own odometry keeps rgbd_iterations)
     graph_rgbd_iterations: tuple = (20, 10, 5)
