@@ -101,8 +101,11 @@ def open_run_sequence(run_dir: Path, gt: Path | None = None) -> Sequence:
     if gt is not None:
         options.pop("format", None)
         options.pop("camera", None)
+        options.pop("depth_latency", None)
     elif options.get("format") == "7scenes" and options.get("camera") is None:
         options["camera"] = "shipped"  # recorded before 7-Scenes was read registered by default
+    elif options.get("format") == "tum" and "depth_latency" not in options:
+        options["depth_latency"] = 0.0  # recorded with none (before TUM fr1 was paired by its depth latency)
     try:
         override = IntrinsicsOverride(**options.pop("override", {}))
         return load_sequence(folder, override, **options)

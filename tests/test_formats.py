@@ -70,6 +70,29 @@ def test_7scenes_seq_folder_defaults_and_no_reading_code(tmp_path):
                        -truth_poses()[:, :3, 0] * 0.025, atol=1e-6)  # the depth camera, 2.5 cm along -x
 
 
+def test_a_tum_fr1_run_recorded_before_the_depth_latency_reopens_without_it(tmp_path):
+    """fr1 pairs colour with depth stamps minus 15 ms; a run folder whose record has no latency (made before it
+    existed) reopens with the old pairing, so its stage outputs keep their frames (and fingerprints)."""
+    folder, _ = _write("tum", tmp_path)
+    stamps = [line.split() for line in (folder / "depth.txt").read_text().splitlines() if not line.startswith("#")]
+    # depth stamped 15.5 ms before each colour frame (and 17.8 ms after the one before), as in fr1_rpy 400-439
+    shifted = [f"{float(t) - 0.004 - 0.0155:.6f} {name}" for t, name in stamps]
+    shifted.append(f"{float(stamps[-1][0]) - 0.004 - 0.0155 + 1 / 30:.6f} {stamps[-1][1]}")
+    (folder / "depth.txt").write_text("\n".join(shifted) + "\n")
+    new = load_sequence(folder)
+    assert new.load_options["depth_latency"] == 0.015
+    assert [p.name for p in new.depth_paths] == [name.split("/")[1] for _, name in stamps[1:]] + [stamps[-1][1].split("/")[1]]
+    write_run_info(tmp_path / "new", new)
+    assert open_run_sequence(tmp_path / "new").depth_paths == new.depth_paths
+    record = json.loads((tmp_path / "new" / "run.json").read_text())
+    del record["load_options"]["depth_latency"]
+    (tmp_path / "old" ).mkdir()
+    (tmp_path / "old" / "run.json").write_text(json.dumps(record))
+    old = open_run_sequence(tmp_path / "old")
+    assert [p.name for p in old.depth_paths] == [name.split("/")[1] for _, name in stamps]
+    assert "depth_latency" not in old.load_options
+
+
 def test_a_7scenes_run_recorded_before_registration_reopens_as_shipped(tmp_path):
     """Run folders made when 7-Scenes was read as one camera recorded no camera: they reopen that way."""
     write_7scenes(tmp_path / "s")

@@ -263,10 +263,12 @@ def load_sequence(
     scale: float = 1.0,
     first: int = 0,
     count: int = 0,
+    depth_latency: float | None = None,
 ) -> Sequence:
     """Open a sequence folder in any known layout (detected, or ``format``; see ``io.formats``),
     keep every ``every``-th frame from frame ``first`` on (``count`` of them; 0: all), read at
-    ``scale`` times the size; checks lists, files, intrinsics and depth scale.
+    ``scale`` times the size; checks lists, files, intrinsics and depth scale. ``depth_latency``: TUM layout,
+    seconds by which depth stamps trail what they show (None: the named camera's; see ``io.formats.tum``).
 
     The median valid depth must look like an indoor RGB-D capture (0.25-6 m), which catches the usual
     depth-scale mix-ups (1000 for 5000); ``trust_depth_scale`` relaxes that to 0.1-100 m for scenes
@@ -285,7 +287,7 @@ def load_sequence(
         raise InputError(None, f"--scale {scale} is not in (0, 4]", "e.g. --scale 0.5 for half width and height")
     if first < 0 or count < 0:
         raise InputError(None, f"--first {first} / --count {count} is negative", "e.g. --first 100 --count 40")
-    options = ReadOptions(override or IntrinsicsOverride(), camera, max_time_difference)
+    options = ReadOptions(override or IntrinsicsOverride(), camera, max_time_difference, depth_latency)
     listed = open_format(root, options, format)
     if first >= len(listed):
         raise InputError(listed.root, f"--first {first} is past the last of the sequence's {len(listed)} frames",
@@ -300,6 +302,8 @@ def load_sequence(
                              "trust_depth_scale": trust_depth_scale, "format": sequence.source["format"],
                              "camera": sequence.source.get("camera"), "every": every, "scale": scale,
                              "first": first, "count": count}
+    if sequence.source.get("depth_latency_s"):  # only then: older records, without it, keep their fingerprints
+        sequence.load_options["depth_latency"] = sequence.source["depth_latency_s"]
     return sequence
 
 

@@ -17,12 +17,13 @@ NOMINAL_FPS = 30.0  # frame rate assumed by layouts without timestamps (7-Scenes
 
 @dataclass(frozen=True)
 class ReadOptions:
-    """Reader inputs beyond the folder: command-line intrinsics, a named camera (TUM: fr1/fr2/fr3)
-    and TUM's colour/depth association tolerance (seconds)."""
+    """Reader inputs beyond the folder: command-line intrinsics, a named camera (TUM: fr1/fr2/fr3),
+    TUM's colour/depth association tolerance and depth latency (seconds; None: the named camera's)."""
 
     override: IntrinsicsOverride = field(default_factory=IntrinsicsOverride)
     camera: str | None = None
     max_time_difference: float = 0.02
+    depth_latency: float | None = None
 
 
 def intrinsics_with_defaults(root: Path, override: IntrinsicsOverride, first_rgb: Path,

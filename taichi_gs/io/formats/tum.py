@@ -60,12 +60,16 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     if camera is not None:
         values = {k: float(v) for k, v in CAMERAS[camera].items() if k in PINHOLE}
         override = IntrinsicsOverride(**{**values, **flags})
-    latency = float(CAMERAS[camera].get("depth_latency_s", 0.0)) if camera is not None else 0.0
+    latency = options.depth_latency
+    if latency is None:
+        latency = float(CAMERAS[camera].get("depth_latency_s", 0.0)) if camera is not None else 0.0
     sequence = _open_tum_layout(root, override, options.max_time_difference, latency)
     if camera is not None:
         distortion = np.array(CAMERAS[camera]["distortion"], dtype=float)
         intr = sequence.intrinsics
         if np.any(distortion != 0):
             sequence.transform = then(sequence.transform, Undistort(intr.K(), distortion, intr.width, intr.height))
-        sequence.source = {**sequence.source, "camera": camera, **({"depth_latency_s": latency} if latency else {})}
+        sequence.source = {**sequence.source, "camera": camera}
+    if latency:
+        sequence.source = {**sequence.source, "depth_latency_s": latency}
     return sequence
