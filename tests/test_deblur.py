@@ -46,7 +46,7 @@ def test_collapsed_exposure_is_reopened_to_the_minimum_spread():
 
 def test_missing_stage2_output_is_an_input_error(tmp_path):
     with pytest.raises(InputError, match="stage-2 output missing"):
-        load_stage2(tmp_path, 3)
+        load_stage2(tmp_path, np.arange(3.0))
 
 
 def _exposure_px_error(sequence, frames, estimate) -> float:

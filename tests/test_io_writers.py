@@ -10,8 +10,9 @@ from taichi_gs import geometry as g
 from taichi_gs.errors import InputError
 from taichi_gs.io.atomic import atomic_path
 from taichi_gs.io.ply import read_ply, read_point_cloud, read_splats, write_point_cloud, write_splats
-from taichi_gs.io.trajectory import read_tum, write_tum
+from taichi_gs.io.trajectory import check_frame_times, read_tum, write_tum
 from taichi_gs.splats import Splats, splats_from_points
+from taichi_gs.stages.deblur import load_stage2
 
 
 def random_poses(n, seed=0):
@@ -131,3 +132,25 @@ def test_atomic_path_leaves_nothing_on_failure(tmp_path):
             tmp.write_text("half")
             raise RuntimeError("killed")
     assert target.read_text() == "old" and list(tmp_path.iterdir()) == [target]
+
+
+def test_a_trajectory_for_other_frames_is_a_one_line_error(tmp_path):
+    """[ours] A stage's trajectory must be stamped like the frames it is read for: a run folder reopened on other
+    frames (another pairing, another --first) fails with the file's name instead of using the poses by index."""
+    frames = 1000.0 + np.arange(4) / 30
+    path = tmp_path / "trajectory.txt"
+    check_frame_times(path, frames + 1e-4, frames, "rerun")  # within the 6 written decimals' reach: fine
+    with pytest.raises(InputError, match="other frames") as info:
+        check_frame_times(path, frames + 5 / 30, frames, "rerun stage 1")
+    assert info.value.path == path and "\n" not in str(info.value)
+    with pytest.raises(InputError, match="3 poses for 4 frames"):
+        check_frame_times(path, frames[:3], frames, "rerun stage 1")
+
+
+def test_stage_3_refuses_stage_2_poses_of_other_frames(tmp_path):
+    frames = 1000.0 + np.arange(3) / 30
+    (tmp_path / "refine").mkdir()
+    write_tum(tmp_path / "refine" / "trajectory.txt", frames + 1 / 30, np.stack([np.eye(4)] * 3))
+    (tmp_path / "refine" / "splats.ply").write_bytes(b"")
+    with pytest.raises(InputError, match="stamped for other frames"):
+        load_stage2(tmp_path, frames)

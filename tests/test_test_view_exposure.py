@@ -167,7 +167,7 @@ def test_held_out_frames_start_where_their_training_neighbours_moved(tmp_path, f
                                  densify_until=20, densify_every=10, exposure_from=0, test_pose_iterations=0,
                                  test_fit_from_neighbours=from_neighbours)
     result = run_deblur(sequence, tmp_path / "run", config)
-    base, _ = load_stage2(tmp_path / "run", len(sequence))
+    base, _ = load_stage2(tmp_path / "run", sequence.timestamps)
     learned = np.stack([[se3_log(invert(base[j]) @ result.mid_poses[j])] * 2 for j in range(len(sequence))])
     assert result.test == [1, 4]
     for frame in result.test:

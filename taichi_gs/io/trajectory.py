@@ -11,6 +11,25 @@ from ..geometry import pose_from_rt, quat_to_rotmat, rotmat_to_quat
 from .atomic import write_text
 
 
+# [ours] Stamps of a stage's trajectory and of the frames it was made for agree to the 6 decimals it is written
+# with; frames are at least 1/100 s apart, so a larger difference means other frames
+FRAME_TIME_TOLERANCE_S = 1e-3
+
+
+def check_frame_times(path: Path, timestamps: np.ndarray, frame_times: np.ndarray, fix: str) -> None:
+    """A one-line error naming ``path`` when its ``timestamps`` (one per pose) are not the sequence's
+    ``frame_times``: another count, or another frame's stamp (a run folder reopened on other frames)."""
+    if len(timestamps) != len(frame_times):
+        raise InputError(path, f"{len(timestamps)} poses for {len(frame_times)} frames", fix)
+    if len(timestamps) == 0:
+        return
+    gap = np.abs(np.asarray(timestamps, dtype=np.float64) - np.asarray(frame_times, dtype=np.float64))
+    if np.any(gap > FRAME_TIME_TOLERANCE_S):
+        k = int(np.argmax(gap > FRAME_TIME_TOLERANCE_S))  # the first
+        raise InputError(path, f"poses are stamped for other frames (pose {k} at {float(timestamps[k]):.6f} s, "
+                               f"frame {k} at {float(frame_times[k]):.6f} s)", fix)
+
+
 def format_tum(timestamps: np.ndarray, poses: np.ndarray, header: str | None = None) -> str:
     """TUM text of camera-to-world poses (N x 4 x 4)."""
     lines = [f"# {header}"] if header else []

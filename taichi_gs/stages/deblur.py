@@ -29,7 +29,7 @@ from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import read_splats, write_splats
 from ..io.sequence import SOURCED, Sequence
-from ..io.trajectory import format_tum, read_tum, write_tum
+from ..io.trajectory import check_frame_times, format_tum, read_tum, write_tum
 from ..io.images import encode_depth, to_uint8, write_png
 from ..noreference import laplacian_variance, sharpest_holdout
 from ..photometric import IDENTITY, apply_affine, identity_penalty
@@ -280,15 +280,14 @@ def choose_split(colors: list[np.ndarray], holdout: str, holdout_every: int) -> 
     return (*sharpest_holdout(sharpness, holdout_every), sharpness)
 
 
-def load_stage2(out_dir: Path, n_frames: int) -> tuple[np.ndarray, Splats]:
-    """Stage-2 poses (N, 4, 4) and splats from OUT/refine/."""
+def load_stage2(out_dir: Path, frame_times: np.ndarray) -> tuple[np.ndarray, Splats]:
+    """Stage-2 poses (N, 4, 4) and splats from OUT/refine/, made for the frames stamped ``frame_times``."""
     poses_path, splats_path = out_dir / "refine" / "trajectory.txt", out_dir / "refine" / "splats.ply"
     for path in (poses_path, splats_path):
         if not path.is_file():
             raise InputError(path, "stage-2 output missing", "run 'taichi-gs refine' first")
-    _, poses = read_tum(poses_path)
-    if len(poses) != n_frames:
-        raise InputError(poses_path, f"{len(poses)} poses for {n_frames} frames", "rerun stage 2 on this sequence")
+    timestamps, poses = read_tum(poses_path)
+    check_frame_times(poses_path, timestamps, frame_times, "rerun stage 2 on this sequence")
     splats = read_splats(splats_path)
     if len(splats) == 0:
         raise InputError(splats_path, "no Gaussians", "rerun stage 2")
@@ -400,7 +399,7 @@ def run_deblur(
     if config.k < 1:
         raise InputError(None, f"k must be at least 1, got {config.k}", "set [deblur] k or --k to 1 or more")
     out_dir = Path(out_dir)
-    poses, splats = load_stage2(out_dir, len(sequence))
+    poses, splats = load_stage2(out_dir, sequence.timestamps)
     stage_dir = out_dir / "deblur"
     stage_dir.mkdir(parents=True, exist_ok=True)
     sourced = loss_mask(sequence, config)

@@ -40,7 +40,7 @@ from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import read_point_cloud, write_point_cloud, write_splats
 from ..io.sequence import Sequence
-from ..io.trajectory import read_tum, write_tum
+from ..io.trajectory import check_frame_times, read_tum, write_tum
 from ..plots import line_plot
 from ..refine_model import DepthRefiner
 from ..splats import splats_from_points
@@ -342,7 +342,10 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, poses: np.ndarray, model
 
 
 def _run_stage(context: StageContext) -> StageRun:
-    _, initial, cloud, colors = load_stage1(context.out, context.poses, context.points)
+    timestamps, initial, cloud, colors = load_stage1(context.out, context.poses, context.points)
+    if context.poses is None:  # stage 1's own trajectory; a --poses file is taken pose by frame, as given
+        check_frame_times(context.out / "pose" / "trajectory.txt", timestamps, context.sequence.timestamps,
+                          "rerun 'taichi-gs pose' on this sequence")
     config = context.config
     with context.progress(STAGE.title, config.iterations_per_frame * len(context.sequence)) as update:
         result = run_refine(context.sequence, initial, cloud, colors, context.out, config, progress=update)
