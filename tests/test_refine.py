@@ -84,7 +84,7 @@ def test_resume_from_a_checkpoint_matches_an_uninterrupted_run(scene, tmp_path):
 
 def test_missing_stage1_outputs_are_input_errors(tmp_path):
     with pytest.raises(InputError, match="stage-1 output missing"):
-        load_stage1(tmp_path)
+        load_stage1(tmp_path, np.arange(3.0))
 
 
 def test_spatial_order_changes_the_memory_layout_not_the_steps():

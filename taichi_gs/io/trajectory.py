@@ -21,8 +21,6 @@ def check_frame_times(path: Path, timestamps: np.ndarray, frame_times: np.ndarra
     ``frame_times``: another count, or another frame's stamp (a run folder reopened on other frames)."""
     if len(timestamps) != len(frame_times):
         raise InputError(path, f"{len(timestamps)} poses for {len(frame_times)} frames", fix)
-    if len(timestamps) == 0:
-        return
     gap = np.abs(np.asarray(timestamps, dtype=np.float64) - np.asarray(frame_times, dtype=np.float64))
     if np.any(gap > FRAME_TIME_TOLERANCE_S):
         k = int(np.argmax(gap > FRAME_TIME_TOLERANCE_S))  # the first

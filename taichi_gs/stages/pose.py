@@ -349,7 +349,8 @@ def estimate_relative_pose(
     for seed, guess in _retry_seeds(first, prior, config):
         forward, backward = seeded_flows(to_gray_u8(color_t), to_gray_u8(color_t1), depth_t, depth_t1, K, guess,
                                          config.flow_preset)
-        retry = _finish_pair(start_pair(*frames, forward, backward, config, views), *frames, prior, config, views)
+        retry = _finish_pair(start_pair(*frames, forward, backward, config, views, ahead.samples.target_normals),
+                             *frames, prior, config, views)
         better = retry.score < result.score if config.verify else not retry.weak
         if better:
             retry.flow_seed, retry.reason = seed, f"unseeded flow failed: {first.reason}"
@@ -410,11 +411,13 @@ class PairStart:
 
 def start_pair(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
                flow: np.ndarray, backward_flow: np.ndarray | None, config: PoseConfig,
-               views: tuple[FrameView, FrameView] | None) -> PairStart:
-    """One attempt's prior-free part with the given flows (``views``: the frames' views when verifying, else None)."""
+               views: tuple[FrameView, FrameView] | None, target_normals: np.ndarray | None = None) -> PairStart:
+    """One attempt's prior-free part with the given flows (``views``: the frames' views when verifying, else None;
+    ``target_normals``: frame t+1's :func:`joint_normals`, when known)."""
     started = time.perf_counter()
     source_mask = config.reliable_depth(depth_t)
-    samples = sample_pair(color_t, depth_t, color_t1, depth_t1, K, flow, backward_flow, source_mask, config)
+    samples = sample_pair(color_t, depth_t, color_t1, depth_t1, K, flow, backward_flow, source_mask, config,
+                          target_normals)
     flow_T, iterations, reason = _flow_solve(samples, config)
     ahead = PairStart(samples, flow_T, iterations, reason, source_mask)
     if views is not None:
@@ -614,8 +617,10 @@ def _prepare_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointClou
 def sample_pair(
     color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
     flow: np.ndarray, backward_flow: np.ndarray | None, source_mask: np.ndarray, config: PoseConfig,
+    target_normals: np.ndarray | None = None,
 ) -> PairSamples:
-    """Up to ``max_points`` random source pixels with reliable depth and forward-backward consistent flow."""
+    """Up to ``max_points`` random source pixels with reliable depth and forward-backward consistent flow;
+    ``target_normals``: frame t+1's :func:`joint_normals`, when known (else computed here)."""
     usable = source_mask & np.all(np.isfinite(flow), axis=-1)
     if backward_flow is not None:
         usable &= forward_backward_mask(flow, backward_flow, config.fb_alpha, config.fb_beta)
@@ -632,14 +637,17 @@ def sample_pair(
         flow=flow.reshape(-1, 2)[index].astype(np.float64), intensity=gray_t.reshape(-1)[index].astype(np.float64),
         K=np.asarray(K, dtype=np.float64), target_gray=gray_t1, target_gradient=image_gradient(gray_t1),
         target_depth=depth_t1.astype(np.float64),
-        target_normals=_normals(depth_t1, K, config) if config.verify and config.joint_solve else None,
+        target_normals=target_normals if target_normals is not None else joint_normals(depth_t1, K, config),
     )
 
 
-def _normals(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> np.ndarray:
-    """Unit normals of a frame's reliable depth (NaN where undefined), for the point-to-plane term: central
-    differences of the depth smoothed over the reliable pixels (Gaussian, ``joint_normal_smooth_px`` at 320 px
-    width), as ICP fits its normals to a neighbourhood rather than to single noisy samples."""
+def joint_normals(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> np.ndarray | None:
+    """Unit normals of a frame's reliable depth (NaN where undefined) for the joint solve's point-to-plane term,
+    None without a joint solve (``verify`` and ``joint_solve``): central differences of the depth smoothed over
+    the reliable pixels (Gaussian, ``joint_normal_smooth_px`` at 320 px width), as ICP fits its normals to a
+    neighbourhood rather than to single noisy samples."""
+    if not (config.verify and config.joint_solve):
+        return None
     mask = config.reliable_depth(depth)
     depth = np.where(mask, depth, 0.0).astype(np.float64)
     sigma = config.joint_normal_smooth_px * depth.shape[1] / 320.0
@@ -724,7 +732,7 @@ def flow_provider(sequence, config: PoseConfig, frames: FrameCache) -> FlowProvi
 
 class FrameCache:
     """A sequence's frames and what pairs and the pose graph derive from them (grey frames for optical flow,
-    verification views, information clouds), each read or computed once while among the ``keep`` frames used
+    verification views, information clouds, the joint solve's normals), each read or computed once while among the ``keep`` frames used
     last: pairs and graph edges visit frames in windows. Safe to share between threads."""
 
     def __init__(self, sequence, K: np.ndarray, config: PoseConfig, keep: int = 16):
@@ -734,6 +742,7 @@ class FrameCache:
         self.gray = _Recent(lambda i: _read_only(to_gray_u8(self.color(i))), keep)
         self.view = _Recent(lambda i: frame_view(self.color(i), self.depth(i), K, settings), keep)
         self.info_cloud = _Recent(lambda i: _information_cloud(self.depth(i), K, config), keep)
+        self.normals = _Recent(lambda i: joint_normals(self.depth(i), K, config), keep)
 
 
 class _Recent:
@@ -909,7 +918,8 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
         flows = seeded_flows(frames.gray(i), frames.gray(j), depth_i, depth_j, K, init, config.flow_preset)
         check = _flow_check(*flows) if config.verify_flow_weight > 0 else None
         if config.graph_joint:
-            samples = sample_pair(color_i, depth_i, color_j, depth_j, K, *flows, config.reliable_depth(depth_i), config)
+            samples = sample_pair(color_i, depth_i, color_j, depth_j, K, *flows, config.reliable_depth(depth_i), config,
+                                  frames.normals(j))
             _add_joint(candidates, samples, init, config, name=f"{FROM_JOINT}-chain")
     chosen = _choose(candidates, views, K, config,
                      ("rgbd-icp-chain", "rgbd-chain", "icp-chain", f"{FROM_JOINT}-chain", "chain"), flow_check=check)
@@ -966,7 +976,7 @@ def _start_pair_of(frames: FrameCache, provider: FlowProvider, K: np.ndarray, co
     """Pair k's :func:`start_pair` on the provider's flows (run ahead, on a worker thread when there are several)."""
     views = (frames.view(k), frames.view(k + 1)) if config.verify else None
     return start_pair(frames.color(k), frames.depth(k), frames.color(k + 1), frames.depth(k + 1), K,
-                      provider.flow(k, k + 1), provider.flow(k + 1, k), config, views)
+                      provider.flow(k, k + 1), provider.flow(k + 1, k), config, views, frames.normals(k + 1))
 
 
 def _estimate_pair(frames: FrameCache, k: int, K: np.ndarray, config: PoseConfig, prior: np.ndarray,

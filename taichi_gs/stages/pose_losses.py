@@ -41,12 +41,14 @@ class Warp:
 
     ``valid`` is the mask M_t+1(p_j): Q in front of the camera, p_j inside the image with valid
     target depth at all four bilinear neighbours. ``target_depth`` is D_t+1(p_j), bilinear, with its
-    image gradient ``target_depth_gradient`` (N x 2). ``pixel_jacobian`` is d p_j / d delta (N x 2 x 6).
+    image gradient ``target_depth_gradient`` (N x 2). ``point_jacobian`` is d Q / d delta (N x 3 x 6) and
+    ``pixel_jacobian`` d p_j / d delta (N x 2 x 6).
     """
 
     T: np.ndarray
     Q: np.ndarray
     pixels: np.ndarray
+    point_jacobian: np.ndarray
     pixel_jacobian: np.ndarray
     valid: np.ndarray
     target_depth: np.ndarray
@@ -133,7 +135,7 @@ def warp(T: np.ndarray, samples: PairSamples, min_depth: float = 1e-3) -> Warp:
     point_jacobian = np.concatenate([np.broadcast_to(np.eye(3), (len(Q), 3, 3)), -cross_matrices(Q_safe)], axis=2)
     pixel_jacobian = projection_jacobian(Q_safe, K) @ point_jacobian
     depth, depth_gradient, depth_valid = bilinear_depth(samples.target_depth, pixels)
-    return Warp(T, Q, pixels, pixel_jacobian, front & depth_valid, depth, depth_gradient)
+    return Warp(T, Q, pixels, point_jacobian, pixel_jacobian, front & depth_valid, depth, depth_gradient)
 
 
 def flow_residuals(w: Warp, samples: PairSamples) -> Residuals:
@@ -217,6 +219,5 @@ def point_to_plane_residuals(w: Warp, samples: PairSamples, noise: tuple[float, 
     normals = np.where(has_normal[:, None], normals * scale[:, None], 0.0)
     P_j, dP_dpixel = target_points(w, samples.K)
     values = np.where(has_normal, np.sum(normals * (w.Q - P_j), axis=1), 0.0)
-    dQ = np.concatenate([np.broadcast_to(np.eye(3), (len(w.Q), 3, 3)), -cross_matrices(w.Q)], axis=2)
-    jacobian = np.einsum("ni,nij->nj", normals, dQ - dP_dpixel @ w.pixel_jacobian)
+    jacobian = np.einsum("ni,nij->nj", normals, w.point_jacobian - dP_dpixel @ w.pixel_jacobian)
     return Residuals(np.nan_to_num(values)[:, None], np.nan_to_num(jacobian)[:, None, :])

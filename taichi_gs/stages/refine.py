@@ -138,18 +138,24 @@ def _without_edges(depth: np.ndarray, ratio: float, radius: int) -> np.ndarray:
     return np.where(high - low > ratio * depth, 0.0, depth).astype(np.float32)
 
 
-def load_stage1(out_dir: Path, poses_path: Path | None = None, points_path: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Stage-1 timestamps, poses, and fused points and colours (``poses_path``/``points_path`` replace them)."""
+def load_stage1(out_dir: Path, frame_times: np.ndarray, poses_path: Path | None = None,
+                points_path: Path | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stage-1 poses, and fused points and colours (``poses_path``/``points_path`` replace them). Stage 1's own
+    trajectory must be stamped ``frame_times``, the frames it is read for; a ``poses_path`` file is taken pose by
+    frame, as given."""
+    own = poses_path is None
     poses_path = poses_path or out_dir / "pose" / "trajectory.txt"
     points_path = points_path or out_dir / "pose" / "points.ply"
     for path in (poses_path, points_path):
         if not path.is_file():
             raise InputError(path, "stage-1 output missing", "run 'taichi-gs pose' first or pass --poses and --points")
     timestamps, poses = read_tum(poses_path)
+    if own:
+        check_frame_times(poses_path, timestamps, frame_times, "rerun 'taichi-gs pose' on this sequence")
     points, colors = read_point_cloud(points_path)
     if len(points) == 0:
         raise InputError(points_path, "point cloud is empty", "rerun stage 1; check the depth maps")
-    return timestamps, poses, points, colors
+    return poses, points, colors
 
 
 def resolve_config(config: RefineConfig, sections: Mapping[str, Any], out_dir: Path | None) -> RefineConfig:
@@ -342,10 +348,7 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, poses: np.ndarray, model
 
 
 def _run_stage(context: StageContext) -> StageRun:
-    timestamps, initial, cloud, colors = load_stage1(context.out, context.poses, context.points)
-    if context.poses is None:  # stage 1's own trajectory; a --poses file is taken pose by frame, as given
-        check_frame_times(context.out / "pose" / "trajectory.txt", timestamps, context.sequence.timestamps,
-                          "rerun 'taichi-gs pose' on this sequence")
+    initial, cloud, colors = load_stage1(context.out, context.sequence.timestamps, context.poses, context.points)
     config = context.config
     with context.progress(STAGE.title, config.iterations_per_frame * len(context.sequence)) as update:
         result = run_refine(context.sequence, initial, cloud, colors, context.out, config, progress=update)
