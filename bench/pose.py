@@ -30,7 +30,7 @@ A variant of ours that changes only the graph (same pair cache key, e.g. the lon
 an earlier method computed on the sequence: its seconds per pair are those pairs' own plus its graph's.
 
 Prints one Markdown row per sequence and method: ATE, ATE between reference breaks, RPE translation and rotation
-(RMSE), per-pair translation error p50 / p90 / max (mm), weak pairs, pruned graph edges, seconds per pair (wall).
+(RMSE), RPE rotation drift (the mean of the pairs' rotation errors: the systematic part, which accumulates), per-pair translation error p50 / p90 / max (mm), weak pairs, pruned graph edges, seconds per pair (wall).
 A reference break is a pair whose ground-truth relative pose scores (stage 1's verification, the same for every
 method) above ``--break-ratio`` x the sequence's median: 7-Scenes' reference jumps 36 mm between frames 121 and 122,
 which every method's ATE carries; the ATE between breaks aligns each stretch between them on its own.
@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from taichi_gs.evaluate import ate, rpe
+from taichi_gs.evaluate import ate, rotation_drift_deg, rpe
 from taichi_gs.flow import dis_flow, to_gray_u8
 from taichi_gs.geometry import backproject, invert
 from taichi_gs.icp import align, depth_cloud, prepare_icp, rgbd_odometry
@@ -264,7 +264,7 @@ def row(name: str, method: str, poses: np.ndarray, gt: np.ndarray, breaks: list[
     e = pair_errors_mm(poses, gt)
     s = "-" if seconds is None else f"{seconds:.2f}"
     return (f"| {name} | {method} | {1000 * ate(poses, gt):.1f} | {1000 * segment_ate(poses, gt, breaks):.1f} | "
-            f"{1000 * trans:.1f} | {rot:.3f} | "
+            f"{1000 * trans:.1f} | {rot:.3f} | {rotation_drift_deg(poses, gt):.3f} | "
             f"{np.median(e):.1f} / {np.percentile(e, 90):.1f} / {e.max():.1f} | {extra} | {s} |")
 
 
@@ -288,8 +288,8 @@ def main() -> None:
     methods = args.methods.split(",")
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_pose_"))
     print("| sequence | method | ATE (mm) | ATE between reference breaks (mm) | RPE trans (mm) | RPE rot (deg) | "
-          "pair err p50 / p90 / max (mm) | weak / pruned | s/pair |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "RPE rot drift (deg/pair) | pair err p50 / p90 / max (mm) | weak / pruned | s/pair |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     suspects, break_lines = [], []
     for name, sequence in sequences(args, root):
         gt = sequence.gt_poses

@@ -87,7 +87,7 @@ def test_eval_trajectory_pair_prints_json(tmp_path):
     result = runner.invoke(app, ["eval", "--traj", str(tmp_path / "est.txt"), "--gt-traj", str(tmp_path / "gt.txt"), "--json"])
     assert result.exit_code == 0, result.output
     data = json.loads(result.stdout)
-    assert set(data) >= {"ate_m", "rpe_trans_m", "rpe_rot_deg"} and 0 < data["ate_m"] < 0.1
+    assert set(data) >= {"ate_m", "rpe_trans_m", "rpe_rot_deg", "rpe_rot_drift_deg"} and 0 < data["ate_m"] < 0.1
 
 
 def test_bad_input_is_one_line_exit_2(tmp_path):

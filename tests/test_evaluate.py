@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from taichi_gs import geometry as g
-from taichi_gs.evaluate import ate, inverse_depth_rmse, match_by_time, psnr, rpe, ssim, trajectory_errors
+from taichi_gs.evaluate import (ate, inverse_depth_rmse, match_by_time, psnr, rotation_drift_deg, rpe, ssim,
+                                trajectory_errors)
 from taichi_gs.io.trajectory import write_tum
 
 
@@ -42,6 +43,27 @@ def test_rpe_of_known_constant_error():
         est.append(est[-1] @ (g.invert(gt[i]) @ gt[i + 1]) @ offset)
     trans, rot = rpe(np.stack(est), gt)
     assert trans == pytest.approx(0.01, abs=1e-9) and rot == pytest.approx(0.5, abs=1e-7)
+
+
+def chained_with(gt, offsets):
+    """The reference's relative poses chained with offsets[i] applied after pair i."""
+    est = [gt[0]]
+    for i in range(len(gt) - 1):
+        est.append(est[-1] @ (g.invert(gt[i]) @ gt[i + 1]) @ offsets[i])
+    return np.stack(est)
+
+
+def test_rotation_drift_is_the_systematic_part_of_the_rpe_rotation():
+    _, gt = drifting_pair(n=25)
+    turn = g.pose_from_rt(g.so3_exp([0, np.radians(0.03), 0]), [0, 0, 0])
+    back = g.pose_from_rt(g.so3_exp([0, -np.radians(0.03), 0]), [0, 0, 0])
+    steady = chained_with(gt, [turn] * 24)  # turns 0.03 deg too far at every pair: drifts
+    alternating = chained_with(gt, [turn, back] * 12)  # the same error per pair, cancelling: no drift
+    assert rotation_drift_deg(steady, gt) == pytest.approx(0.03, abs=1e-9)
+    assert rotation_drift_deg(alternating, gt) < 1e-9
+    assert rpe(alternating, gt)[1] == pytest.approx(0.03, abs=1e-9)
+    assert trajectory_errors(steady, gt).as_dict()["rpe_rot_drift_deg"] == pytest.approx(0.03, abs=1e-9)
+    assert np.isnan(rotation_drift_deg(steady[:1], gt[:1]))
 
 
 def test_nan_reference_frames_are_skipped():
