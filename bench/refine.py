@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import resource
-import sys
 import time
 from pathlib import Path
 
@@ -36,9 +35,6 @@ from taichi_gs.stages.refine import PRESETS, RefineConfig, run_refine
 from taichi_gs.standins import perturbed
 from taichi_gs.synth import SynthConfig, generate
 
-sys.path.insert(0, str(Path(__file__).parent))
-from pose import first_frames  # noqa: E402
-
 VOXEL = 0.02
 
 
@@ -48,7 +44,7 @@ def synthetic(kind: str, size: tuple[int, int], frames: int, turn_frames: int, r
     folder = root / f"{kind}_{size[0]}x{size[1]}_{generated}"
     if not (folder / "frames.txt").is_file():
         generate(SynthConfig(width=size[0], height=size[1], frames=generated, trajectory=kind, blur="extreme", seed=0), folder)
-    sequence = first_frames(load_sequence(folder), frames)
+    sequence = load_sequence(folder, count=frames)
     return sequence, invert(sequence.gt_poses[0]) @ sequence.gt_poses
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +26,6 @@ from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
 from taichi_gs.stages.refine import PRESETS, run_refine
 from taichi_gs.stages.refine_accept import accept_refined_poses
 
-sys.path.insert(0, str(Path(__file__).parent))
-from pose import first_frames  # noqa: E402
-
 STEPS = {"1 cm steps (method)": (1e-2, 1e-5), "0.1 mm steps (default)": (1e-4, 1e-6)}
 
 
@@ -40,9 +36,7 @@ def cells(poses: np.ndarray, gt: np.ndarray) -> str:
 
 def sequence_rows(folder: Path, frames: int, out: Path, from_gt: bool = True) -> None:
     """Stage 1, then stage 2 variants on one sequence; prints one table row each."""
-    sequence = load_sequence(folder)
-    if frames:
-        sequence = first_frames(sequence, frames)
+    sequence = load_sequence(folder, count=frames)
     name = f"{folder.name} ({len(sequence)} fr, {sequence.depth(0).shape[1]}x{sequence.depth(0).shape[0]})"
     gt = invert(sequence.gt_poses[0]) @ sequence.gt_poses
     pose_config = PoseConfig()
