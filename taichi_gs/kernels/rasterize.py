@@ -10,7 +10,11 @@ alpha ``1 - T``, and the local index of the last contributor for the backward re
 
 The backward replays each tile back to front from the stored final transmittance, recovering
 ``T_i = T_{i+1} / (1 - a_i)``, and writes per-slot gradients of (mean2d, conic, depth, opacity,
-colour) — single writer per slot, no atomics.
+colour) — single writer per slot, no atomics. A pixel's image gradients (colour g_c, depth g_z,
+alpha g_A) are constant along its replay, so what lies behind Gaussian i enters dL/d a_i only through
+the scalar ``S_i = T_final (g_c . bg - g_A) + sum_{k > i} w_k (g_c . c_k + g_z z_k)``:
+``dL/d a_i = T_i (g_c . c_i + g_z z_i) - S_i / (1 - a_i)``. The replay carries that one running sum
+per pixel instead of the colour and depth behind and the final transmittance.
 """
 
 import functools
@@ -47,9 +51,10 @@ N_SLOT_GRADS = N_GRADS
 # Per-pixel forward state: transmittance (negated once finished), colour, depth, last contributor.
 F_TRANS, F_RGB, F_DEPTH, F_LAST = 0, 1, 4, 5
 F_WIDTH = 6
-# Per-pixel backward state: final T, running T, colour + depth behind, d(rgb, depth, alpha), last.
-B_FINAL, B_TRANS, B_BEHIND, B_GRAD, B_LAST = 0, 1, 2, 6, 11
-B_WIDTH = 12
+# Per-pixel backward state: running T, the running sum S behind (module docstring), d(rgb, depth), last
+# contributor.
+B_TRANS, B_BEHIND, B_GRAD, B_LAST = 0, 1, 2, 6
+B_WIDTH = 7
 
 
 @functools.cache
@@ -193,22 +198,23 @@ def make(dt) -> SimpleNamespace:
         d_alpha: Array, state: Array, slot_grad: Array, with_colour: ti.template(),
     ):
         """Write dL/d(screen record) of every slot of tile t into slot_grad[slot, :]. ``state`` (flat,
-        B_WIDTH values per pixel of the image) packs each pixel's final T, running T, colour/depth
-        accumulated behind, its image gradients and last contributor (see the B_* columns). Without
-        ``with_colour`` (static, a depth-and-alpha render) the colour terms are skipped and the slots'
-        colour gradients are 0."""
+        B_WIDTH values per pixel of the image) packs each pixel's running T, running sum behind, image
+        gradients and last contributor (see the B_* columns). Without ``with_colour`` (static,
+        a depth-and-alpha render) the colour terms are skipped and the slots' colour gradients are 0."""
         box = tile_pixels(t, tiles_x, width, height)
         last = -1
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
             p = pixel_record(v, u, width, B_WIDTH)
-            state[p + B_FINAL] = out_trans[v, u]
-            state[p + B_TRANS] = out_trans[v, u]
-            for c in ti.static(range(4)):
-                state[p + B_BEHIND + c] = 0.0
+            final_trans = out_trans[v, u]
+            g_rgb = vec3(d_rgb[v, u, 0], d_rgb[v, u, 1], d_rgb[v, u, 2])
+            state[p + B_TRANS] = final_trans
+            if ti.static(with_colour):  # the background's share of S (module docstring)
+                state[p + B_BEHIND] = final_trans * (g_rgb.dot(bg) - d_alpha[v, u])
+            else:
+                state[p + B_BEHIND] = -final_trans * d_alpha[v, u]
             for c in ti.static(range(3)):
-                state[p + B_GRAD + c] = d_rgb[v, u, c]
+                state[p + B_GRAD + c] = g_rgb[c]
             state[p + B_GRAD + 3] = d_depth[v, u]
-            state[p + B_GRAD + 4] = d_alpha[v, u]
             state[p + B_LAST] = ti.cast(out_last[v, u], dt)
             last = ti.max(last, out_last[v, u])
         start = tile_start[t]
@@ -238,27 +244,20 @@ def make(dt) -> SimpleNamespace:
                             gauss = ti.exp(power)
                             alpha = ti.min(dt(MAX_ALPHA), opacity * gauss)
                             if alpha >= dt(ALPHA_MIN):
-                                final_trans = state[p + B_FINAL]
                                 inv_keep = 1.0 / (1.0 - alpha)  # T_i = T_{i+1} / (1 - alpha_i)
                                 trans = state[p + B_TRANS] * inv_keep
-                                w = alpha * trans
+                                behind = state[p + B_BEHIND]
                                 g_depth = state[p + B_GRAD + 3]
-                                behind_depth = state[p + B_BEHIND + 3]
-                                g_alpha = (
-                                    g_depth * (depth * trans - behind_depth * inv_keep)
-                                    + state[p + B_GRAD + 4] * final_trans * inv_keep
-                                )
+                                w = alpha * trans
+                                seen = g_depth * depth  # g . (what this Gaussian adds per unit weight)
                                 if ti.static(with_colour):
                                     g_rgb = vec3(state[p + B_GRAD], state[p + B_GRAD + 1], state[p + B_GRAD + 2])
-                                    behind = vec3(
-                                        state[p + B_BEHIND], state[p + B_BEHIND + 1], state[p + B_BEHIND + 2]
-                                    )
-                                    g_alpha += g_rgb.dot(color * trans - (behind + final_trans * bg) * inv_keep)
+                                    seen += g_rgb.dot(color)
                                     for c in ti.static(range(3)):
                                         acc[P_COLOR + c] += g_rgb[c] * w
-                                        state[p + B_BEHIND + c] = behind[c] + color[c] * w
+                                g_alpha = seen * trans - behind * inv_keep
                                 acc[P_DEPTH] += g_depth * w
-                                state[p + B_BEHIND + 3] = behind_depth + depth * w
+                                state[p + B_BEHIND] = behind + seen * w
                                 state[p + B_TRANS] = trans
                                 if opacity * gauss <= dt(MAX_ALPHA):
                                     acc[P_OPACITY] += g_alpha * gauss
