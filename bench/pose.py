@@ -30,7 +30,8 @@ A variant of ours that changes only the graph (same pair cache key, e.g. the lon
 an earlier method computed on the sequence: its seconds per pair are those pairs' own plus its graph's.
 
 Prints one Markdown row per sequence and method: ATE, ATE between reference breaks, RPE translation and rotation
-(RMSE), RPE rotation drift (the mean of the pairs' rotation errors: the systematic part, which accumulates), per-pair translation error p50 / p90 / max (mm), weak pairs, pruned graph edges, seconds per pair (wall).
+(RMSE), RPE rotation drift (the norm of the pairs' mean rotation error: the systematic part, which accumulates),
+per-pair translation error p50 / p90 / max (mm), weak pairs, pruned graph edges, seconds per pair (wall).
 A reference break is a pair whose ground-truth relative pose scores (stage 1's verification, the same for every
 method) above ``--break-ratio`` x the sequence's median: 7-Scenes' reference jumps 36 mm between frames 121 and 122,
 which every method's ATE carries; the ATE between breaks aligns each stretch between them on its own.
