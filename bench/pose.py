@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from taichi_gs.evaluate import ate, rotation_drift_deg, rpe
+from taichi_gs.evaluate import ate, trajectory_errors
 from taichi_gs.flow import dis_flow, to_gray_u8
 from taichi_gs.geometry import backproject, invert
 from taichi_gs.icp import align, depth_cloud, prepare_icp, rgbd_odometry
@@ -261,11 +261,11 @@ def ground_truth_check(name: str, sequence, result, truth_scores: np.ndarray, ra
 
 def row(name: str, method: str, poses: np.ndarray, gt: np.ndarray, breaks: list[int], seconds: float | None,
         extra: str) -> str:
-    trans, rot = rpe(poses, gt)
+    t = trajectory_errors(poses, gt)
     e = pair_errors_mm(poses, gt)
     s = "-" if seconds is None else f"{seconds:.2f}"
-    return (f"| {name} | {method} | {1000 * ate(poses, gt):.1f} | {1000 * segment_ate(poses, gt, breaks):.1f} | "
-            f"{1000 * trans:.1f} | {rot:.3f} | {rotation_drift_deg(poses, gt):.3f} | "
+    return (f"| {name} | {method} | {1000 * t.ate_m:.1f} | {1000 * segment_ate(poses, gt, breaks):.1f} | "
+            f"{1000 * t.rpe_trans_m:.1f} | {t.rpe_rot_deg:.3f} | {t.rpe_rot_drift_deg:.3f} | "
             f"{np.median(e):.1f} / {np.percentile(e, 90):.1f} / {e.max():.1f} | {extra} | {s} |")
 
 

@@ -79,9 +79,8 @@ def _pair_errors(est: np.ndarray, ref: np.ndarray) -> list[np.ndarray]:
     return errors
 
 
-def rpe(est: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
-    """Relative pose error over consecutive frames: (translation RMSE m, rotation RMSE deg)."""
-    errors = _pair_errors(est, ref)
+def _rmse_of(errors: list[np.ndarray]) -> tuple[float, float]:
+    """(translation RMSE m, rotation RMSE deg) of pair errors E."""
     if not errors:
         return float("nan"), float("nan")
     trans = [np.linalg.norm(E[:3, 3]) for E in errors]
@@ -89,13 +88,22 @@ def rpe(est: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
     return float(np.sqrt(np.mean(np.square(trans)))), float(np.sqrt(np.mean(np.square(rot))))
 
 
-def rotation_drift_deg(est: np.ndarray, ref: np.ndarray) -> float:
-    """[ours] Degrees per pair of systematic rotation error: |mean over consecutive pairs of log R(E)|, the
-    part of the RPE rotation that does not average out along the trajectory."""
-    errors = _pair_errors(est, ref)
+def _drift_of(errors: list[np.ndarray]) -> float:
+    """|mean of log R(E)| of pair errors E, in degrees."""
     if not errors:
         return float("nan")
     return float(np.degrees(np.linalg.norm(np.mean([so3_log(E[:3, :3]) for E in errors], axis=0))))
+
+
+def rpe(est: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
+    """Relative pose error over consecutive frames: (translation RMSE m, rotation RMSE deg)."""
+    return _rmse_of(_pair_errors(est, ref))
+
+
+def rotation_drift_deg(est: np.ndarray, ref: np.ndarray) -> float:
+    """[ours] Degrees per pair of systematic rotation error: |mean over consecutive pairs of log R(E)|, the
+    part of the RPE rotation that does not average out along the trajectory."""
+    return _drift_of(_pair_errors(est, ref))
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
@@ -107,9 +115,10 @@ def trajectory_errors(est: np.ndarray, ref: np.ndarray) -> TrajectoryErrors:
     """ATE and RPE of matched pose lists (frames whose reference is NaN are skipped)."""
     if est.shape != ref.shape:
         raise ValueError(f"estimate has shape {est.shape}, reference {ref.shape}")
-    trans, rot = rpe(est, ref)
+    errors = _pair_errors(est, ref)  # once for the RPE and the drift
+    trans, rot = _rmse_of(errors)
     frames = len(_finite_pairs(est, ref)[0])
-    return TrajectoryErrors(ate(est, ref), trans, rot, frames, rotation_drift_deg(est, ref))
+    return TrajectoryErrors(ate(est, ref), trans, rot, frames, _drift_of(errors))
 
 
 def match_by_time(t_est: np.ndarray, t_ref: np.ndarray, max_difference: float = EVO_MAX_TIME_DIFFERENCE) -> tuple[np.ndarray, np.ndarray]:

@@ -732,8 +732,8 @@ def flow_provider(sequence, config: PoseConfig, frames: FrameCache) -> FlowProvi
 
 class FrameCache:
     """A sequence's frames and what pairs and the pose graph derive from them (grey frames for optical flow,
-    verification views, information clouds, the joint solve's normals), each read or computed once while among the ``keep`` frames used
-    last: pairs and graph edges visit frames in windows. Safe to share between threads."""
+    verification views, information clouds, the joint solve's normals), each read or computed once while among
+    the ``keep`` frames used last: pairs and graph edges visit frames in windows. Safe to share between threads."""
 
     def __init__(self, sequence, K: np.ndarray, config: PoseConfig, keep: int = 16):
         settings = config.verify_settings()
