@@ -18,6 +18,7 @@ Methods (each from identity at frame 0):
 - ours dense verification: ours with four times the verification grid (12000 points a direction)
 - ours no long edges: ours with ``[pose] graph_long_spans = []`` (no long edges between close cameras)
 - ours long edges every frame: ours with long edges from every frame (``graph_long_every = 1``), not every 4th
+- ours preset DIS levels: ours with DIS's finest pyramid level as its preset has it (``flow_finest_width_px = 0``)
 - ours no verify: the flow -> ICP -> RGB-D odometry path behind the method's guards, no graph
 - method: the paper's path only (flow solve, then point-to-plane ICP), chained
 - cand:NAME: one candidate of ours' run (flow, joint, icp, icp-prior, rgbd-icp, ...), chained (verification ablation)
@@ -61,7 +62,8 @@ from taichi_gs.stages.pose import PoseConfig, chain_poses, run_pose
 
 SEVEN_SCENES = Path("/work/shared/data/7scenes_redkitchen_000-249")
 BREAK_RATIO = 3.0  # a reference pair scoring above this x its median is a break (see reference_breaks)
-METHOD_ONLY = {"verify": False, "rgbd_refine": False, "icp_from_prior": False, "pose_graph": False, "icp_max_points": 80000}
+METHOD_ONLY = {"verify": False, "rgbd_refine": False, "icp_from_prior": False, "pose_graph": False, "icp_max_points": 80000,
+               "flow_finest_width_px": 0}
 OURS = {
     "ours": {},
     "ours no flow check": {"verify_flow_weight": 0.0},
@@ -72,6 +74,7 @@ OURS = {
     "ours long edges every frame": {"graph_long_every": 1},
     "ours light graph odometry": {"graph_rgbd_iterations": (10, 5, 3)},
     "ours dense verification": {"verify_grid_points": 12000},
+    "ours preset DIS levels": {"flow_finest_width_px": 0},
     "ours no verify": {"verify": False, "pose_graph": False},
     "method": METHOD_ONLY,
 }

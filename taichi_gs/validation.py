@@ -48,7 +48,7 @@ FRAME_GAPS = ((lambda v: all(isinstance(k, int) and k >= 2 for k in v)), "a list
 
 FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
     "pose": {
-        "flow_preset": _one_of(*DIS_PRESETS),
+        "flow_preset": _one_of(*DIS_PRESETS), "flow_finest_width_px": OPTIONAL_COUNT,
         "fb_alpha": NON_NEGATIVE, "fb_beta": NON_NEGATIVE,
         "max_points": COUNT, "min_points": _at_least(6),
         "min_depth_m": POSITIVE, "max_depth_m": POSITIVE, "depth_edge_ratio": NON_NEGATIVE,

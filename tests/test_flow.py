@@ -7,7 +7,8 @@ import pytest
 from test_pose_scene import MOTION, exact_flow, pair
 
 from taichi_gs.errors import InputError
-from taichi_gs.flow import FileFlow, dis_flow, forward_backward_mask, read_flow, rigid_flow, to_gray_u8, write_flow
+from taichi_gs.flow import (FileFlow, dis_flow, finest_scale, forward_backward_mask, read_flow, rigid_flow, to_gray_u8,
+                            write_flow)
 from taichi_gs.geometry import se3_exp
 
 
@@ -76,6 +77,14 @@ def test_dis_flow_is_subpixel_on_the_test_scene():
     flow = dis_flow(to_gray_u8(color_t), to_gray_u8(color_t1), "medium")
     error = np.linalg.norm(flow - exact_flow(depth_t, K, MOTION), axis=-1)
     assert np.median(error[20:-20, 20:-20]) < 0.3
+
+
+@pytest.mark.parametrize("preset_scale, width, finest_width, expected", [
+    (1, 320, 320, 0), (1, 256, 320, 0), (1, 640, 320, 1), (1, 639, 320, 0), (2, 640, 320, 1), (1, 1280, 320, 1),
+    (3, 1280, 320, 2), (1, 320, 0, 1), (2, 640, 0, 2),
+])
+def test_finest_scale_keeps_the_finest_level_at_least_as_wide_as_asked(preset_scale, width, finest_width, expected):
+    assert finest_scale(preset_scale, width, finest_width) == expected
 
 
 def test_rigid_flow_is_the_exact_flow_and_fills_holes_when_asked():

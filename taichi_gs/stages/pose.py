@@ -67,6 +67,8 @@ class PoseConfig:
     # Optical flow
     flow_dir: str = ""  # precomputed flows (see taichi_gs.flow); empty: OpenCV DIS
     flow_preset: str = "medium"  # DIS preset: ultrafast | fast | medium
+    # [ours] DIS's finest pyramid level is at least this wide (0: the preset's own; see taichi_gs.flow.finest_scale)
+    flow_finest_width_px: int = 320
     seeded_retry: bool = True  # weak pair: redo it with DIS seeded by the prior's flow, then by rejected ICP's
     fb_alpha: float = 0.01  # forward-backward check: |f + b|^2 < alpha (|f|^2 + |b|^2) + beta
     fb_beta: float = 0.5  # px^2
@@ -228,8 +230,9 @@ _NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "g
 
 # The method's path alone: flow solve, then point-to-plane ICP behind its guards, pairs chained
 # (as a --config file: [pose] verify = false, rgbd_refine = false, icp_from_prior = false, pose_graph = false,
-# icp_max_points = 80000).
-METHOD_ONLY = PoseConfig(verify=False, rgbd_refine=False, icp_from_prior=False, pose_graph=False, icp_max_points=80000)
+# icp_max_points = 80000, flow_finest_width_px = 0).
+METHOD_ONLY = PoseConfig(verify=False, rgbd_refine=False, icp_from_prior=False, pose_graph=False, icp_max_points=80000,
+                         flow_finest_width_px=0)
 
 # fast: ICP on at most icp_max_points points per frame; paper: on every point.
 PRESETS = {"fast": PoseConfig(), "paper": PoseConfig(icp_max_points=0)}
@@ -341,14 +344,14 @@ def estimate_relative_pose(
     if ahead is None:
         if flow is None:
             gray_t, gray_t1 = to_gray_u8(color_t), to_gray_u8(color_t1)
-            flow = dis_flow(gray_t, gray_t1, config.flow_preset)
-            backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset)
+            flow = dis_flow(gray_t, gray_t1, config.flow_preset, finest_width_px=config.flow_finest_width_px)
+            backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset, finest_width_px=config.flow_finest_width_px)
         ahead = start_pair(*frames, flow, backward_flow, config, views)
     first = _finish_pair(ahead, *frames, prior, config, views)
     result = first
     for seed, guess in _retry_seeds(first, prior, config):
         forward, backward = seeded_flows(to_gray_u8(color_t), to_gray_u8(color_t1), depth_t, depth_t1, K, guess,
-                                         config.flow_preset)
+                                         config)
         retry = _finish_pair(start_pair(*frames, forward, backward, config, views, ahead.samples.target_normals),
                              *frames, prior, config, views)
         better = retry.score < result.score if config.verify else not retry.weak
@@ -374,10 +377,11 @@ def _retry_seeds(first: RelativePose, prior: np.ndarray, config: PoseConfig) -> 
 
 
 def seeded_flows(gray_t: np.ndarray, gray_t1: np.ndarray, depth_t: np.ndarray, depth_t1: np.ndarray,
-                 K: np.ndarray, guess: np.ndarray, preset: str) -> tuple[np.ndarray, np.ndarray]:
-    """Forward and backward DIS flows, each seeded by the rigid flow of ``guess`` (camera t -> t+1)."""
-    forward = dis_flow(gray_t, gray_t1, preset, initial=rigid_flow(depth_t, K, guess, fill_holes=True))
-    backward = dis_flow(gray_t1, gray_t, preset, initial=rigid_flow(depth_t1, K, invert(guess), fill_holes=True))
+                 K: np.ndarray, guess: np.ndarray, config: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Forward and backward DIS flows (the config's), each seeded by the rigid flow of ``guess`` (camera t -> t+1)."""
+    preset, width = config.flow_preset, config.flow_finest_width_px
+    forward = dis_flow(gray_t, gray_t1, preset, rigid_flow(depth_t, K, guess, fill_holes=True), width)
+    backward = dis_flow(gray_t1, gray_t, preset, rigid_flow(depth_t1, K, invert(guess), fill_holes=True), width)
     return forward, backward
 
 
@@ -727,7 +731,7 @@ def flow_provider(sequence, config: PoseConfig, frames: FrameCache) -> FlowProvi
         provider = FileFlow(config.flow_dir, list(sequence.names))
         provider.check()
         return provider
-    return DISFlow(frames.gray, config.flow_preset)
+    return DISFlow(frames.gray, config.flow_preset, config.flow_finest_width_px)
 
 
 class FrameCache:
@@ -915,7 +919,7 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
     views = (frames.view(i), frames.view(j))
     check = None
     if config.verify_flow_weight > 0 or config.graph_joint:
-        flows = seeded_flows(frames.gray(i), frames.gray(j), depth_i, depth_j, K, init, config.flow_preset)
+        flows = seeded_flows(frames.gray(i), frames.gray(j), depth_i, depth_j, K, init, config)
         check = _flow_check(*flows) if config.verify_flow_weight > 0 else None
         if config.graph_joint:
             samples = sample_pair(color_i, depth_i, color_j, depth_j, K, *flows, config.reliable_depth(depth_i), config,
