@@ -343,9 +343,7 @@ def estimate_relative_pose(
         views = (frame_view(color_t, depth_t, K, settings), frame_view(color_t1, depth_t1, K, settings))
     if ahead is None:
         if flow is None:
-            gray_t, gray_t1 = to_gray_u8(color_t), to_gray_u8(color_t1)
-            flow = dis_flow(gray_t, gray_t1, config.flow_preset, finest_width_px=config.flow_finest_width_px)
-            backward_flow = dis_flow(gray_t1, gray_t, config.flow_preset, finest_width_px=config.flow_finest_width_px)
+            flow, backward_flow = dis_flows(to_gray_u8(color_t), to_gray_u8(color_t1), config)
         ahead = start_pair(*frames, flow, backward_flow, config, views)
     first = _finish_pair(ahead, *frames, prior, config, views)
     result = first
@@ -376,13 +374,19 @@ def _retry_seeds(first: RelativePose, prior: np.ndarray, config: PoseConfig) -> 
     return seeds
 
 
+def dis_flows(gray_t: np.ndarray, gray_t1: np.ndarray, config: PoseConfig,
+              seeds: tuple[np.ndarray | None, np.ndarray | None] = (None, None)) -> tuple[np.ndarray, np.ndarray]:
+    """Forward and backward DIS flows with the config's preset and finest level (``seeds``: each one's initial
+    flow, or None)."""
+    preset, width = config.flow_preset, config.flow_finest_width_px
+    return (dis_flow(gray_t, gray_t1, preset, seeds[0], width), dis_flow(gray_t1, gray_t, preset, seeds[1], width))
+
+
 def seeded_flows(gray_t: np.ndarray, gray_t1: np.ndarray, depth_t: np.ndarray, depth_t1: np.ndarray,
                  K: np.ndarray, guess: np.ndarray, config: PoseConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Forward and backward DIS flows (the config's), each seeded by the rigid flow of ``guess`` (camera t -> t+1)."""
-    preset, width = config.flow_preset, config.flow_finest_width_px
-    forward = dis_flow(gray_t, gray_t1, preset, rigid_flow(depth_t, K, guess, fill_holes=True), width)
-    backward = dis_flow(gray_t1, gray_t, preset, rigid_flow(depth_t1, K, invert(guess), fill_holes=True), width)
-    return forward, backward
+    """:func:`dis_flows`, each seeded by the rigid flow of ``guess`` (camera t -> t+1)."""
+    return dis_flows(gray_t, gray_t1, config, (rigid_flow(depth_t, K, guess, fill_holes=True),
+                                               rigid_flow(depth_t1, K, invert(guess), fill_holes=True)))
 
 
 @dataclass
