@@ -75,6 +75,7 @@ OURS = {
     "ours light graph odometry": {"graph_rgbd_iterations": (10, 5, 3)},
     "ours dense verification": {"verify_grid_points": 12000},
     "ours preset DIS levels": {"flow_finest_width_px": 0},
+    "ours no near-tie edges": {"graph_near_ties": False},
     "ours no verify": {"verify": False, "pose_graph": False},
     "method": METHOD_ONLY,
 }

@@ -12,6 +12,10 @@ Cauchy loss on each edge's Mahalanobis length ``chi = sqrt(e^T Lambda e)``. The 
 ``min_chi``), so the loss needs no
 calibrated noise level: an edge that disagrees with the rest far more than the typical edge does
 is outvoted (its weight ends near 0) and reported as pruned.
+
+[ours] :func:`rechoose` swaps an edge for an alternative measurement of the same two nodes that the
+optimised poses satisfy better (stage 1: a pair's near-tied candidates, which its own score could not
+tell apart), before the graph is solved again.
 """
 
 from __future__ import annotations
@@ -81,10 +85,29 @@ def optimise(poses: np.ndarray, edges: list[Edge], settings: GraphSettings = Gra
     return poses
 
 
+def rechoose(edges: list[Edge], poses: np.ndarray, alternatives: dict[int, list[Edge]]) -> int:
+    """[ours] Replace ``edges[k]``, for each k in ``alternatives``, with whichever of itself and
+    ``alternatives[k]`` the poses satisfy best (smallest Mahalanobis length of the edge error; a tie keeps
+    the edge). Returns how many edges were replaced."""
+    replaced = 0
+    for k, options in alternatives.items():
+        chi = [_mahalanobis(edge_error(edge, poses), edge.information) for edge in [edges[k], *options]]
+        best = int(np.argmin(chi))
+        if best > 0:
+            edges[k] = options[best - 1]
+            replaced += 1
+    return replaced
+
+
+def _mahalanobis(error: np.ndarray, information: np.ndarray) -> float:
+    """chi = sqrt(e^T Lambda e)."""
+    return float(np.sqrt(max(float(error @ information @ error), 0.0)))
+
+
 def _cauchy_weights(edges: list[Edge], errors: list[np.ndarray], settings: GraphSettings) -> np.ndarray:
     """Cauchy weights; the scale comes from the edges that close cycles (kind other than odometry): in a
     chain with few extra edges most odometry edges sit on no cycle and have chi = 0 whatever their error."""
-    chi = np.array([np.sqrt(max(float(e @ edge.information @ e), 0.0)) for edge, e in zip(edges, errors)])
+    chi = np.array([_mahalanobis(e, edge.information) for edge, e in zip(edges, errors)])
     closing = np.array([edge.kind != "odometry" for edge in edges])
     reference = chi[closing] if closing.any() else chi
     scale = max(settings.robust_scale * float(np.median(reference)), settings.min_chi)

@@ -70,7 +70,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "verify_photo_weight": NON_NEGATIVE, "graph_skips": FRAME_GAPS,
         "graph_long_spans": FRAME_GAPS, "graph_long_every": COUNT,
         "graph_weak_weight": NON_NEGATIVE, "graph_info_voxel_m": POSITIVE, "graph_info_max_points": OPTIONAL_COUNT,
-        "graph_info_distance_m": POSITIVE,
+        "graph_info_distance_m": POSITIVE, "graph_near_tie_mm": NON_NEGATIVE,
         "loop_min_gap": _at_least(2), "loop_every": COUNT, "loop_max_distance_m": POSITIVE,
         "loop_max_angle_deg": _within(0, 180), "threads": OPTIONAL_COUNT,
     },

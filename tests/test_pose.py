@@ -405,3 +405,20 @@ def test_stage_does_not_import_taichi():
 
     code = "import sys, taichi_gs.stages.pose, taichi_gs.flow, taichi_gs.icp; print('taichi' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "False"
+
+
+def test_near_tied_candidates_far_enough_apart_become_alternative_edges(monkeypatch):
+    monkeypatch.setattr(pose_stage, "_information", lambda frames, i, j, T, config: np.eye(6))
+    moved = {mm: se3_exp(np.array([mm / 1000, 0.0, 0.0, 0.0, 0.0, 0.0])) @ MOTION for mm in (0, 5, 5.5, 10, 20)}
+    scores = {"constant-velocity": (0.100, 20), "flow": (0.1015, 5.5), "joint": (0.101, 5),
+              "icp": (0.103, 10), "rgbd-icp": (0.100, 0), "rgbd-icp-prior": (0.1001, 0)}
+    candidates = {name: {"score": score, "transform": moved[mm].tolist()} for name, (score, mm) in scores.items()}
+    config = PoseConfig(verify_margin=0.02, graph_near_tie_mm=2.0, graph_weak_weight=0.01)
+    for weak in (False, True):
+        relative = pose_stage.RelativePose(MOTION, "rgbd-icp", weak=weak, candidates=candidates)
+        edge = pose_stage.Edge(3, 4, MOTION, np.eye(6), "odometry", "rgbd-icp", 0.1, weak)
+        ties = pose_stage._near_tie_edges(edge, relative, None, config)
+        # the prior is never offered, icp scores outside the 2% tie, rgbd-icp-prior sits on the chosen
+        # transform, and joint lies 0.5 mm from flow, which comes first in the candidates' order
+        assert [(e.estimate, e.source, e.target, e.kind, e.weak) for e in ties] == [("flow", 3, 4, "odometry", weak)]
+        assert np.allclose(ties[0].transform, moved[5.5]) and ties[0].information[0, 0] == (0.01 if weak else 1.0)

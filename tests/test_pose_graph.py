@@ -6,7 +6,7 @@ import numpy as np
 
 from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert, se3_exp
-from taichi_gs.pose_graph import Edge, optimise
+from taichi_gs.pose_graph import Edge, optimise, rechoose
 
 
 def _trajectory(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -59,3 +59,25 @@ def test_plain_odometry_chain_is_left_unchanged():
     poses = optimise(_chain(edges, len(truth)), edges)
     assert np.abs(poses - truth).max() < 1e-9
     assert not any(e.pruned for e in edges)
+
+
+def test_rechoose_takes_the_alternative_the_other_edges_agree_with_and_leaves_a_worse_one():
+    rng = np.random.default_rng(3)
+    truth = _trajectory(30, rng)
+    edges = _edges(truth, (1, 2, 3), rng, noise=2e-4)
+    slipped = next(k for k, e in enumerate(edges) if e.source == 12 and e.kind == "odometry")
+    sound = next(k for k, e in enumerate(edges) if e.source == 5 and e.kind == "odometry")
+    true_12, kept_5 = edges[slipped].transform, edges[sound]
+    slip = se3_exp(np.array([0.008, 0.0, 0.0, 0.0, 0.0, 0.0]))  # 8 mm: a near-tie's size, too small to prune
+    edges[slipped] = Edge(12, 13, slip @ true_12, edges[slipped].information, "odometry", "rgbd-icp")
+    start = _chain(edges, len(truth))
+    before = optimise(start, edges)
+    alternatives = {slipped: [Edge(12, 13, true_12, edges[slipped].information, "odometry", "joint")],
+                    sound: [Edge(5, 6, slip @ kept_5.transform, kept_5.information, "odometry", "flow")]}
+
+    assert rechoose(edges, before, alternatives) == 1
+    assert edges[slipped].estimate == "joint" and edges[sound] is kept_5
+    after = optimise(start, edges)
+    pair_12 = [np.linalg.norm((invert(invert(truth[13]) @ truth[12]) @ invert(p[13]) @ p[12])[:3, 3])
+               for p in (before, after)]
+    assert pair_12[1] < 0.6 * pair_12[0] and pair_12[1] < 2e-4

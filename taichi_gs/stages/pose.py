@@ -37,7 +37,7 @@ from ..io import jsonout
 from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
 from ..machine import available_cores
-from ..pose_graph import Edge, optimise
+from ..pose_graph import Edge, optimise, rechoose
 from ..pose_verify import (FlowCheck, FrameView, Verification, VerifySettings, depth_normals, flow_disagreement,
                            frame_view, verify)
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
@@ -176,6 +176,12 @@ class PoseConfig:
     # From every frame: four times the edges, 1.31x the time, no better on 7-Scenes. () turns them off.
     graph_long_spans: tuple = (16, 32)
     graph_long_every: int = 4
+    # [ours] near-ties in the graph: a pair's candidates that score within verify_margin of its best (its
+    # verification cannot tell them apart) and lie more than graph_near_tie_mm from its chosen transform are
+    # offered to the graph; once it is solved, each pair's edge takes whichever of them its poses, set by the
+    # skip edges, loop closures and long edges, satisfy best, and the graph is solved again
+    graph_near_ties: bool = True
+    graph_near_tie_mm: float = 2.0
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
     # [ours] threads (0: one per core this process may run on, at most DEFAULT_MAX_THREADS). The next pairs'
@@ -226,7 +232,8 @@ _NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "g
                     "graph_rgbd_iterations", "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m",
                     "graph_info_max_points",
                     "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every", "loop_max_distance_m",
-                    "loop_max_angle_deg", "graph_long_spans", "graph_long_every", "threads"}
+                    "loop_max_angle_deg", "graph_long_spans", "graph_long_every", "graph_near_ties",
+                    "graph_near_tie_mm", "threads"}
 
 # The method's path alone: flow solve, then point-to-plane ICP behind its guards, pairs chained
 # (as a --config file: [pose] verify = false, rgbd_refine = false, icp_from_prior = false, pose_graph = false,
@@ -302,7 +309,10 @@ class PoseResult:
         if self.edges:
             loops = sum(e["kind"] == "loop" for e in self.edges)
             pruned = sum(e["pruned"] for e in self.edges)
+            rechosen = sum(e["kind"] == "odometry" and e["estimate"] != self.pairs[e["source"]]["estimate"]
+                           for e in self.edges)
             text += f"; pose graph: {len(self.edges)} edges ({loops} loop closures), {pruned} pruned"
+            text += f", {rechosen} pairs re-chosen among near-ties" if rechosen else ""
         return text
 
 
@@ -857,7 +867,8 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
 def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray, config: PoseConfig,
                       frames: FrameCache, pool: Executor | None = None,
                       on_frame: Callable[[int], None] | None = None) -> tuple[np.ndarray, list[Edge]]:
-    """[ours] Poses from a robust pose graph over the pairs, skip edges and loop closures (see PoseConfig);
+    """[ours] Poses from a robust pose graph over the pairs, skip edges, loop closures and long edges, solved
+    again once each pair's edge has been re-chosen among its near-tied candidates (see PoseConfig);
     ``frames``: the run's per-frame cache, shared with the pairs; ``pool``: where the edges run (side by
     side on a thread pool; default: one after another); ``on_frame(done)`` after each frame's edges."""
     K = sequence.intrinsics.K()
@@ -867,7 +878,7 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
     skips, longs = [int(k) for k in config.graph_skips], [int(k) for k in config.graph_long_spans]
     close = set(_long_candidates(chained, config))
 
-    def frame_edges(i: int) -> tuple[Edge, list[Edge | None], list[Edge | None]]:
+    def frame_edges(i: int) -> tuple[Edge, list[Edge | None], list[Edge | None], list[Edge]]:
         r = relatives[i]
         info = _information(frames, i, i + 1, r.transform, config)
         odometry = Edge(i, i + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0),
@@ -876,7 +887,8 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
                 for k in skips]
         long = [_graph_edge(frames, i, i + k, chained, K, config, "long", float("inf")) if (i, i + k) in close else None
                 for k in longs]
-        return odometry, skip, long
+        ties = _near_tie_edges(odometry, r, frames, config) if config.graph_near_ties else []
+        return odometry, skip, long, ties
 
     def loop_edge(pair: tuple[int, int]) -> Edge | None:
         return _graph_edge(frames, *pair, chained, K, config, "loop", max_score)
@@ -891,14 +903,40 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
         if on_frame is not None:
             on_frame(len(by_frame))
     by_frame.reverse()
-    edges = [odometry for odometry, _, _ in by_frame]
+    edges = [odometry for odometry, _, _, _ in by_frame]
     for g in range(len(skips)):
-        edges += [skip[g] for _, skip, _ in by_frame if skip[g] is not None]
+        edges += [skip[g] for _, skip, _, _ in by_frame if skip[g] is not None]
     if config.loop_closures:
         edges += [e for e in pool.map(loop_edge, _loop_candidates(chained, config)) if e is not None]
     for g in range(len(longs)):  # each frame's long edges ran with its other edges (the progress counts them)
-        edges += [long[g] for _, _, long in by_frame if long[g] is not None]
-    return optimise(chained, edges), edges
+        edges += [long[g] for _, _, long, _ in by_frame if long[g] is not None]
+    poses = optimise(chained, edges)
+    near_ties = {k: ties for k, (_, _, _, ties) in enumerate(by_frame) if ties}  # edges[k]: pair k's edge
+    if rechoose(edges, poses, near_ties):
+        poses = optimise(chained, edges)
+    return poses, edges
+
+
+def _near_tie_edges(edge: Edge, relative: RelativePose, frames: FrameCache, config: PoseConfig) -> list[Edge]:
+    """[ours] The pair's other candidates that scored within ``verify_margin`` of its best (the constant-velocity
+    guess aside) and lie more than ``graph_near_tie_mm`` from its chosen transform and from each other, as edges
+    like the pair's ``edge`` (``graph_near_ties``; :func:`taichi_gs.pose_graph.rechoose` picks among them)."""
+    scores = {name: c["score"] for name, c in relative.candidates.items()
+              if c.get("score") is not None and "transform" in c}
+    if not scores:
+        return []
+    tie = min(scores.values()) * (1.0 + config.verify_margin)
+    kept, found = [relative.transform], []
+    for name, score in scores.items():
+        transform = np.asarray(relative.candidates[name]["transform"], dtype=np.float64)
+        apart = min(np.linalg.norm(transform[:3, 3] - other[:3, 3]) for other in kept)
+        if name == FROM_CONSTANT_VELOCITY or score > tie or apart <= config.graph_near_tie_mm / 1000.0:
+            continue
+        kept.append(transform)
+        info = _information(frames, edge.source, edge.target, transform, config)
+        found.append(Edge(edge.source, edge.target, transform, info * (config.graph_weak_weight if edge.weak else 1.0),
+                          "odometry", name, score, edge.weak))
+    return found
 
 
 def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.ndarray, config: PoseConfig,
