@@ -416,8 +416,7 @@ def test_near_tied_candidates_far_enough_apart_become_alternative_edges(monkeypa
     config = PoseConfig(verify_margin=0.02, graph_near_tie_mm=2.0, graph_weak_weight=0.01)
     for weak in (False, True):
         relative = pose_stage.RelativePose(MOTION, "rgbd-icp", weak=weak, candidates=candidates)
-        edge = pose_stage.Edge(3, 4, MOTION, np.eye(6), "odometry", "rgbd-icp", 0.1, weak)
-        ties = pose_stage._near_tie_edges(edge, relative, None, config)
+        ties = pose_stage._near_tie_edges(3, relative, None, config)
         # the prior is never offered, icp scores outside the 2% tie, rgbd-icp-prior sits on the chosen
         # transform, and joint lies 0.5 mm from flow, which comes first in the candidates' order
         assert [(e.estimate, e.source, e.target, e.kind, e.weak) for e in ties] == [("flow", 3, 4, "odometry", weak)]

@@ -880,14 +880,12 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
 
     def frame_edges(i: int) -> tuple[Edge, list[Edge | None], list[Edge | None], list[Edge]]:
         r = relatives[i]
-        info = _information(frames, i, i + 1, r.transform, config)
-        odometry = Edge(i, i + 1, r.transform, info * (config.graph_weak_weight if r.weak else 1.0),
-                        "odometry", r.estimate, r.score, r.weak)
+        odometry = _pair_edge(frames, i, r.transform, r.estimate, r.score, r.weak, config)
         skip = [_graph_edge(frames, i, i + k, chained, K, config, "skip", max_score) if i + k < n else None
                 for k in skips]
         long = [_graph_edge(frames, i, i + k, chained, K, config, "long", float("inf")) if (i, i + k) in close else None
                 for k in longs]
-        ties = _near_tie_edges(odometry, r, frames, config) if config.graph_near_ties else []
+        ties = _near_tie_edges(i, r, frames, config) if config.graph_near_ties else []
         return odometry, skip, long, ties
 
     def loop_edge(pair: tuple[int, int]) -> Edge | None:
@@ -917,10 +915,18 @@ def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarr
     return poses, edges
 
 
-def _near_tie_edges(edge: Edge, relative: RelativePose, frames: FrameCache, config: PoseConfig) -> list[Edge]:
-    """[ours] The pair's other candidates that scored within ``verify_margin`` of its best (the constant-velocity
+def _pair_edge(frames: FrameCache, i: int, transform: np.ndarray, estimate: str, score: float, weak: bool,
+               config: PoseConfig) -> Edge:
+    """The graph's edge camera i -> camera i + 1 for a pair's transform; a weak pair's information is scaled by
+    ``graph_weak_weight`` (kept only to connect the graph)."""
+    info = _information(frames, i, i + 1, transform, config) * (config.graph_weak_weight if weak else 1.0)
+    return Edge(i, i + 1, transform, info, "odometry", estimate, score, weak)
+
+
+def _near_tie_edges(i: int, relative: RelativePose, frames: FrameCache, config: PoseConfig) -> list[Edge]:
+    """[ours] Pair i's other candidates that scored within ``verify_margin`` of its best (the constant-velocity
     guess aside) and lie more than ``graph_near_tie_mm`` from its chosen transform and from each other, as edges
-    like the pair's ``edge`` (``graph_near_ties``; :func:`taichi_gs.pose_graph.rechoose` picks among them)."""
+    like the pair's own (``graph_near_ties``; :func:`taichi_gs.pose_graph.rechoose` picks among them)."""
     scores = {name: c["score"] for name, c in relative.candidates.items()
               if c.get("score") is not None and "transform" in c}
     if not scores:
@@ -933,9 +939,7 @@ def _near_tie_edges(edge: Edge, relative: RelativePose, frames: FrameCache, conf
         if name == FROM_CONSTANT_VELOCITY or score > tie or apart <= config.graph_near_tie_mm / 1000.0:
             continue
         kept.append(transform)
-        info = _information(frames, edge.source, edge.target, transform, config)
-        found.append(Edge(edge.source, edge.target, transform, info * (config.graph_weak_weight if edge.weak else 1.0),
-                          "odometry", name, score, edge.weak))
+        found.append(_pair_edge(frames, i, transform, name, score, relative.weak, config))
     return found
 
 
