@@ -187,13 +187,21 @@ def warp_by_flow(image: np.ndarray, flow: np.ndarray) -> np.ndarray:
                      borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
 
 
+def finite_flow(flow: np.ndarray) -> np.ndarray:
+    """Pixels where both components of an H x W x 2 flow are finite."""
+    return np.isfinite(flow[..., 0]) & np.isfinite(flow[..., 1])
+
+
 def forward_backward_mask(forward: np.ndarray, backward: np.ndarray, alpha: float = 0.01, beta: float = 0.5) -> np.ndarray:
     """Pixels whose forward flow is undone by the backward flow (Sundaram et al. 2010).
 
     Consistent where |f + b(p + f)|^2 < alpha (|f|^2 + |b(p + f)|^2) + beta and p + f lies inside.
     """
     back = warp_by_flow(backward, forward)
-    round_trip = np.sum((forward + back) ** 2, axis=-1)
-    bound = alpha * (np.sum(forward**2, axis=-1) + np.sum(back**2, axis=-1)) + beta
+    # the components written out (here and in finite_flow): numpy's reductions over a last axis of length 2
+    # are slow on whole frames
+    (fu, fv), (bu, bv) = np.moveaxis(forward, -1, 0), np.moveaxis(back, -1, 0)
+    round_trip = (fu + bu) ** 2 + (fv + bv) ** 2
+    bound = alpha * ((fu**2 + fv**2) + (bu**2 + bv**2)) + beta
     with np.errstate(invalid="ignore"):
         return np.isfinite(round_trip) & (round_trip < bound)

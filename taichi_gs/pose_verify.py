@@ -129,20 +129,24 @@ def frame_view(color: np.ndarray, depth: np.ndarray, K: np.ndarray, settings: Ve
 
 def depth_normals(points: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Unit normals (facing the camera) from central differences of a point map; NaN where undefined."""
-    du = np.zeros_like(points)
-    dv = np.zeros_like(points)
-    du[:, 1:-1] = points[:, 2:] - points[:, :-2]
-    dv[1:-1] = points[2:] - points[:-2]
-    normals = np.cross(du, dv)
+    x, y, z = (np.ascontiguousarray(points[..., k]) for k in range(3))
+
+    def differences(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        du, dv = np.zeros_like(plane), np.zeros_like(plane)
+        du[:, 1:-1] = plane[:, 2:] - plane[:, :-2]
+        dv[1:-1] = plane[2:] - plane[:-2]
+        return du, dv
+
+    (ax, bx), (ay, by), (az, bz) = differences(x), differences(y), differences(z)
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx  # du x dv
     ok = np.zeros_like(mask)
     ok[1:-1, 1:-1] = mask[1:-1, 2:] & mask[1:-1, :-2] & mask[2:, 1:-1] & mask[:-2, 1:-1] & mask[1:-1, 1:-1]
-    length = np.linalg.norm(normals, axis=-1)
+    length = np.sqrt(nx * nx + ny * ny + nz * nz)
     ok &= length > 0
-    normals = normals / np.where(ok, length, 1.0)[..., None]
-    flip = np.sum(normals * points, axis=-1) > 0
-    normals[flip] *= -1.0
-    normals[~ok] = np.nan
-    return normals
+    length = np.where(ok, length, 1.0)
+    nx, ny, nz = nx / length, ny / length, nz / length
+    scale = np.where(ok, np.where(nx * x + ny * y + nz * z > 0, -1.0, 1.0), np.nan)  # face the camera
+    return np.stack([nx * scale, ny * scale, nz * scale], axis=-1)
 
 
 def _direction(T: np.ndarray, source: FrameView, target: FrameView, K: np.ndarray,

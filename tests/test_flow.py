@@ -7,8 +7,8 @@ import pytest
 from test_pose_scene import MOTION, exact_flow, pair
 
 from taichi_gs.errors import InputError
-from taichi_gs.flow import (FileFlow, dis_flow, finest_scale, forward_backward_mask, read_flow, rigid_flow, to_gray_u8,
-                            write_flow)
+from taichi_gs.flow import (FileFlow, dis_flow, finest_scale, finite_flow, forward_backward_mask, read_flow, rigid_flow,
+                            to_gray_u8, write_flow)
 from taichi_gs.geometry import se3_exp
 
 
@@ -70,6 +70,18 @@ def test_forward_backward_mask_rejects_inconsistent_flow():
     assert not mask[7, 10]
     assert not mask[:, -3:].any()  # forward flow leaves the image
     assert mask.mean() > 0.7
+
+
+def test_flow_with_either_component_not_finite_is_neither_finite_nor_consistent():
+    forward = np.full((6, 8, 2), 0.5, np.float32)
+    forward[1, 2, 0] = np.nan
+    forward[3, 4, 1] = np.inf
+    backward = -forward
+    expected = np.ones((6, 8), bool)
+    expected[1, 2] = expected[3, 4] = False
+    np.testing.assert_array_equal(finite_flow(forward), expected)
+    assert not forward_backward_mask(forward, np.nan_to_num(backward))[1, 2]
+    assert not forward_backward_mask(forward, np.nan_to_num(backward))[3, 4]
 
 
 def test_dis_flow_is_subpixel_on_the_test_scene():

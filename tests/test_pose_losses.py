@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from test_pose_scene import MOTION, exact_flow, pair
@@ -11,7 +13,7 @@ from taichi_gs.icp import reliable_depth_mask
 from taichi_gs.stages.pose import PoseConfig, _add_joint, sample_pair
 from taichi_gs.stages.pose_losses import (depth_consistency_residuals, flow_residuals, photometric_residuals,
                                           point_to_plane_residuals, warp)
-from taichi_gs.stages.pose_solver import solve
+from taichi_gs.stages.pose_solver import active_terms, linearise, solve
 
 
 @pytest.fixture(scope="module")
@@ -151,3 +153,26 @@ def test_joint_solve_corrects_a_biased_flow_with_depth():
     assert error_mm(flow_only.T) > 2.0  # the bias alone: 4.0 mm measured
     assert error_mm(joint) < 0.05 * error_mm(flow_only.T)  # 0.16 mm measured
     assert error_mm(joint) < error_mm(flow_solve.T)  # the method's solve, with its exact photometric term: 0.27
+
+
+@pytest.mark.parametrize("settings_of, term_count", [(lambda c: c.solver_settings(with_all_terms=True), 3),
+                                                     (lambda c: c.joint_settings(flow_scale_px=0.5, plane_scale=1.0), 2)],
+                         ids=["flow+photometric+consistency", "joint: flow+plane"])
+def test_normal_equations_sum_each_valid_points_weighted_jacobian_products(scene, settings_of, term_count):
+    """linearise's IRLS system against a loop over points: H = sum w J^T J, g = sum w J^T r, w = weight /
+    max(|r|, floor) / n over the valid points."""
+    settings = dataclasses.replace(settings_of(PoseConfig()), min_points=1)
+    T = perturbed([0.004, -0.003, 0.002, 0.003, -0.002, 0.001])
+    system = linearise(T, scene, settings)
+    valid, terms = active_terms(T, scene, settings)
+    n = int(valid.sum())
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    for residuals, weight, floor in terms:
+        for k in np.flatnonzero(valid):
+            r, J = residuals.values[k], residuals.jacobian[k]
+            w = weight / max(float(np.linalg.norm(r)), floor) / n
+            H += w * J.T @ J
+            g += w * J.T @ r
+    assert len(terms) == term_count and n > 500
+    np.testing.assert_allclose(system.hessian, H, rtol=1e-9, atol=1e-12 * np.abs(H).max())
+    np.testing.assert_allclose(system.gradient, g, rtol=1e-9, atol=1e-12 * np.abs(g).max())

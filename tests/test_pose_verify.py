@@ -10,7 +10,7 @@ from test_pose_scene import pair
 
 from taichi_gs.geometry import invert, se3_exp, se3_log
 from taichi_gs.icp import depth_cloud
-from taichi_gs.pose_verify import frame_view, verify
+from taichi_gs.pose_verify import depth_normals, frame_view, verify
 from taichi_gs.stages.pose import PoseConfig, estimate_relative_pose
 
 START = se3_exp(np.array([0.1, 0.55, 1.5, 0.0, 0.0, 0.0]))  # facing the back wall 1.5 m away: a strip of floor
@@ -157,3 +157,26 @@ def test_graph_edge_gets_a_joint_candidate_on_its_own_flows(monkeypatch):
     assert no_joint.pair_key() == config.pair_key()  # a graph setting: the pairs stay cached
     pose_stage._graph_edge(pose_stage.FrameCache(sequence, K, no_joint), 0, 1, slid_chain, K, no_joint, "skip", np.inf)
     assert "joint-chain" not in seen
+
+
+def test_depth_normals_are_unit_cross_products_of_central_differences_facing_the_camera():
+    """Against a loop over pixels: n = (P[v, u+1] - P[v, u-1]) x (P[v+1, u] - P[v-1, u]), normalised and turned
+    towards the camera; NaN on the border and next to a masked pixel."""
+    rng = np.random.default_rng(3)
+    h, w = 9, 12
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    z = 1.5 + 0.05 * u - 0.03 * v + 0.01 * rng.standard_normal((h, w))
+    points = np.stack([(u - 6) / 10 * z, (v - 4) / 10 * z, z], axis=-1)
+    mask = rng.random((h, w)) > 0.15
+    normals = depth_normals(points, mask)
+    for y in range(h):
+        for x in range(w):
+            inner = 0 < y < h - 1 and 0 < x < w - 1
+            if not (inner and mask[y, x] and mask[y, x - 1] and mask[y, x + 1] and mask[y - 1, x] and mask[y + 1, x]):
+                assert np.isnan(normals[y, x]).all()
+                continue
+            n = np.cross(points[y, x + 1] - points[y, x - 1], points[y + 1, x] - points[y - 1, x])
+            n /= np.linalg.norm(n)
+            n = -n if n @ points[y, x] > 0 else n
+            np.testing.assert_allclose(normals[y, x], n, rtol=0, atol=1e-12)
+    assert np.isfinite(normals).all(axis=-1).sum() > 20

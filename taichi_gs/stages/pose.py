@@ -28,7 +28,8 @@ import numpy as np
 
 from .. import profiling
 from ..errors import InputError
-from ..flow import DISFlow, FileFlow, FlowProvider, dis_flow, forward_backward_mask, rigid_flow, to_gray_u8
+from ..flow import (DISFlow, FileFlow, FlowProvider, dis_flow, finite_flow, forward_backward_mask, rigid_flow,
+                    to_gray_u8)
 from ..geometry import backproject, invert, se3_log
 from ..icp import (ICPLevels, align, capped_voxel_down_sample, depth_cloud, open3d, prepare_icp,
                    reliable_depth_mask, rgbd_odometry)
@@ -572,7 +573,7 @@ def _run_once(runs: list[tuple[np.ndarray, np.ndarray | None]], start: np.ndarra
 
 def _flow_check(forward: np.ndarray, backward: np.ndarray | None) -> FlowCheck:
     """The measured flow, trusted where finite and (given the backward flow) forward-backward consistent."""
-    trusted = np.all(np.isfinite(forward), axis=-1)
+    trusted = finite_flow(forward)
     if backward is not None:
         trusted &= forward_backward_mask(forward, backward)
     return FlowCheck(forward, trusted)
@@ -639,7 +640,7 @@ def sample_pair(
 ) -> PairSamples:
     """Up to ``max_points`` random source pixels with reliable depth and forward-backward consistent flow;
     ``target_normals``: frame t+1's :func:`joint_normals`, when known (else computed here)."""
-    usable = source_mask & np.all(np.isfinite(flow), axis=-1)
+    usable = source_mask & finite_flow(flow)
     if backward_flow is not None:
         usable &= forward_backward_mask(flow, backward_flow, config.fb_alpha, config.fb_beta)
     index = np.flatnonzero(usable)

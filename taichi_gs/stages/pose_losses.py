@@ -41,14 +41,13 @@ class Warp:
 
     ``valid`` is the mask M_t+1(p_j): Q in front of the camera, p_j inside the image with valid
     target depth at all four bilinear neighbours. ``target_depth`` is D_t+1(p_j), bilinear, with its
-    image gradient ``target_depth_gradient`` (N x 2). ``point_jacobian`` is d Q / d delta (N x 3 x 6) and
-    ``pixel_jacobian`` d p_j / d delta (N x 2 x 6).
+    image gradient ``target_depth_gradient`` (N x 2). ``pixel_jacobian`` is d p_j / d delta (N x 2 x 6);
+    d Q / d delta is [I | -[Q]x].
     """
 
     T: np.ndarray
     Q: np.ndarray
     pixels: np.ndarray
-    point_jacobian: np.ndarray
     pixel_jacobian: np.ndarray
     valid: np.ndarray
     target_depth: np.ndarray
@@ -115,14 +114,25 @@ def cross_matrices(vectors: np.ndarray) -> np.ndarray:
     return np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], axis=1)
 
 
-def projection_jacobian(Q: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """d pi(K, Q) / d Q for N camera points, N x 2 x 3."""
+def pixel_jacobian(Q: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """d pi(K, Q') / d delta at delta = 0 for Q' = Q + rho + phi x Q (N x 2 x 6): the projection's
+    derivative [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]] times dQ'/d delta = [I | -[Q]x], written out."""
     x, y, z = Q[:, 0], Q[:, 1], Q[:, 2]
     inv_z = 1.0 / z
-    zero = np.zeros_like(z)
-    row_u = np.stack([K[0, 0] * inv_z, zero, -K[0, 0] * x * inv_z**2], -1)
-    row_v = np.stack([zero, K[1, 1] * inv_z, -K[1, 1] * y * inv_z**2], -1)
-    return np.stack([row_u, row_v], axis=1)
+    xz, yz = x * inv_z, y * inv_z
+    fx, fy = K[0, 0], K[1, 1]
+    J = np.zeros((len(Q), 2, 6))
+    J[:, 0, 0] = fx * inv_z
+    J[:, 0, 2] = -fx * xz * inv_z
+    J[:, 0, 3] = -fx * xz * yz
+    J[:, 0, 4] = fx * (1.0 + xz * xz)
+    J[:, 0, 5] = -fx * yz
+    J[:, 1, 1] = fy * inv_z
+    J[:, 1, 2] = -fy * yz * inv_z
+    J[:, 1, 3] = -fy * (1.0 + yz * yz)
+    J[:, 1, 4] = fy * xz * yz
+    J[:, 1, 5] = fy * xz
+    return J
 
 
 def warp(T: np.ndarray, samples: PairSamples, min_depth: float = 1e-3) -> Warp:
@@ -132,10 +142,8 @@ def warp(T: np.ndarray, samples: PairSamples, min_depth: float = 1e-3) -> Warp:
     Q_safe = np.where(front[:, None], Q, np.array([0.0, 0.0, 1.0]))
     K = samples.K
     pixels = np.stack([K[0, 0] * Q_safe[:, 0] / Q_safe[:, 2] + K[0, 2], K[1, 1] * Q_safe[:, 1] / Q_safe[:, 2] + K[1, 2]], -1)
-    point_jacobian = np.concatenate([np.broadcast_to(np.eye(3), (len(Q), 3, 3)), -cross_matrices(Q_safe)], axis=2)
-    pixel_jacobian = projection_jacobian(Q_safe, K) @ point_jacobian
     depth, depth_gradient, depth_valid = bilinear_depth(samples.target_depth, pixels)
-    return Warp(T, Q, pixels, point_jacobian, pixel_jacobian, front & depth_valid, depth, depth_gradient)
+    return Warp(T, Q, pixels, pixel_jacobian(Q_safe, K), front & depth_valid, depth, depth_gradient)
 
 
 def flow_residuals(w: Warp, samples: PairSamples) -> Residuals:
@@ -149,7 +157,7 @@ def photometric_residuals(w: Warp, samples: PairSamples) -> Residuals:
     target, _ = bilinear(samples.target_gray, w.pixels)
     gradient, _ = bilinear(samples.target_gradient, w.pixels)
     values = (samples.intensity - target)[:, None]
-    jacobian = -np.einsum("nk,nkj->nj", gradient, w.pixel_jacobian)[:, None, :]
+    jacobian = -(gradient[:, 0, None] * w.pixel_jacobian[:, 0] + gradient[:, 1, None] * w.pixel_jacobian[:, 1])[:, None, :]
     return Residuals(values, jacobian)
 
 
@@ -200,8 +208,8 @@ def depth_consistency_residuals(w: Warp, samples: PairSamples, min_baseline: flo
     P_j, dP_dpixel = target_points(w, samples.K)
     h_j, dh_j_dP, dh_j_dt = baseline_distance(P_j, t)
     dt_ddelta = np.hstack([np.eye(3), -cross_matrices(t[None])[0]])  # t' = t + rho + phi x t
-    dh_j_dpixel = np.einsum("ni,nij->nj", dh_j_dP, dP_dpixel)
-    dh_j = dh_j_dt @ dt_ddelta + np.einsum("nk,nkj->nj", dh_j_dpixel, w.pixel_jacobian)
+    dh_j_dpixel = np.sum(dh_j_dP[:, :, None] * dP_dpixel, axis=1)
+    dh_j = dh_j_dt @ dt_ddelta + dh_j_dpixel[:, 0, None] * w.pixel_jacobian[:, 0] + dh_j_dpixel[:, 1, None] * w.pixel_jacobian[:, 1]
     jacobian = (dh_i_dx @ dx_ddelta - dh_j)[:, None, :]
     return Residuals((h_i - h_j)[:, None], jacobian)
 
@@ -219,5 +227,8 @@ def point_to_plane_residuals(w: Warp, samples: PairSamples, noise: tuple[float, 
     normals = np.where(has_normal[:, None], normals * scale[:, None], 0.0)
     P_j, dP_dpixel = target_points(w, samples.K)
     values = np.where(has_normal, np.sum(normals * (w.Q - P_j), axis=1), 0.0)
-    jacobian = np.einsum("ni,nij->nj", normals, w.point_jacobian - dP_dpixel @ w.pixel_jacobian)
+    # n^T dQ/d delta = n^T [I | -[Q]x] = [n, Q x n]
+    normal_pixel = np.sum(normals[:, :, None] * dP_dpixel, axis=1)
+    jacobian = np.concatenate([normals, np.cross(w.Q, normals)], axis=1) - (
+        normal_pixel[:, 0, None] * w.pixel_jacobian[:, 0] + normal_pixel[:, 1, None] * w.pixel_jacobian[:, 1])
     return Residuals(np.nan_to_num(values)[:, None], np.nan_to_num(jacobian)[:, None, :])

@@ -93,8 +93,9 @@ def linearise(T: np.ndarray, samples: PairSamples, settings: SolverSettings) -> 
         norms = np.linalg.norm(r, axis=1)
         cost += weight * norms.sum() / n
         irls = weight / np.maximum(norms, floor) / n
-        hessian += np.einsum("n,nki,nkj->ij", irls, J, J)
-        gradient += np.einsum("n,nki,nk->i", irls, J, r)
+        weighted = (J * irls[:, None, None]).reshape(-1, 6)
+        hessian += weighted.T @ J.reshape(-1, 6)
+        gradient += weighted.T @ r.reshape(-1)
     return Linearisation(T, float(cost), n, hessian, gradient)
 
 
