@@ -155,9 +155,10 @@ def test_joint_solve_corrects_a_biased_flow_with_depth():
     assert error_mm(joint) < error_mm(flow_solve.T)  # the method's solve, with its exact photometric term: 0.27
 
 
-@pytest.mark.parametrize("settings_of, term_count", [(lambda c: c.solver_settings(with_all_terms=True), 3),
-                                                     (lambda c: c.joint_settings(flow_scale_px=0.5, plane_scale=1.0), 2)],
-                         ids=["flow+photometric+consistency", "joint: flow+plane"])
+@pytest.mark.parametrize("settings_of, term_count", [
+    (lambda c: c.solver_settings(with_all_terms=True), 3),
+    (lambda c: c.joint_settings(flow_scale_px=0.5, plane_scale=1.0), 2),
+], ids=["flow+photometric+consistency", "joint: flow+plane"])
 def test_normal_equations_sum_each_valid_points_weighted_jacobian_products(scene, settings_of, term_count):
     """linearise's IRLS system against a loop over points: H = sum w J^T J, g = sum w J^T r, w = weight /
     max(|r|, floor) / n over the valid points."""
