@@ -935,9 +935,10 @@ def _near_tie_edges(i: int, relative: RelativePose, frames: FrameCache, config: 
     tie = min(scores.values()) * (1.0 + config.verify_margin)
     kept, found = [relative.transform], []
     for name, score in scores.items():
+        if name == FROM_CONSTANT_VELOCITY or score > tie:
+            continue
         transform = np.asarray(relative.candidates[name]["transform"], dtype=np.float64)
-        apart = min(np.linalg.norm(transform[:3, 3] - other[:3, 3]) for other in kept)
-        if name == FROM_CONSTANT_VELOCITY or score > tie or apart <= config.graph_near_tie_mm / 1000.0:
+        if min(np.linalg.norm(transform[:3, 3] - other[:3, 3]) for other in kept) <= config.graph_near_tie_mm / 1000.0:
             continue
         kept.append(transform)
         found.append(_pair_edge(frames, i, transform, name, score, relative.weak, config))

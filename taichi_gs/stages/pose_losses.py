@@ -135,10 +135,9 @@ def pixel_jacobian(Q: np.ndarray, K: np.ndarray) -> np.ndarray:
     return J
 
 
-def through_pixel(d_dpixel: np.ndarray, pixel_jacobian: np.ndarray) -> np.ndarray:
-    """d f / d delta (N x 6) of per-point scalars f that depend on delta through the warped pixel: the chain rule
-    d f / d p (N x 2) times d p / d delta (N x 2 x 6), per point."""
-    return d_dpixel[:, 0, None] * pixel_jacobian[:, 0] + d_dpixel[:, 1, None] * pixel_jacobian[:, 1]
+def chain(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """The chain rule per point: (N x a) d f / d x times (N x a x b) d x / d y, giving d f / d y (N x b)."""
+    return np.sum(outer[:, :, None] * inner, axis=1)
 
 
 def warp(T: np.ndarray, samples: PairSamples, min_depth: float = 1e-3) -> Warp:
@@ -163,7 +162,7 @@ def photometric_residuals(w: Warp, samples: PairSamples) -> Residuals:
     target, _ = bilinear(samples.target_gray, w.pixels)
     gradient, _ = bilinear(samples.target_gradient, w.pixels)
     values = (samples.intensity - target)[:, None]
-    jacobian = -through_pixel(gradient, w.pixel_jacobian)[:, None, :]
+    jacobian = -chain(gradient, w.pixel_jacobian)[:, None, :]
     return Residuals(values, jacobian)
 
 
@@ -214,8 +213,7 @@ def depth_consistency_residuals(w: Warp, samples: PairSamples, min_baseline: flo
     P_j, dP_dpixel = target_points(w, samples.K)
     h_j, dh_j_dP, dh_j_dt = baseline_distance(P_j, t)
     dt_ddelta = np.hstack([np.eye(3), -cross_matrices(t[None])[0]])  # t' = t + rho + phi x t
-    dh_j_dpixel = np.sum(dh_j_dP[:, :, None] * dP_dpixel, axis=1)
-    dh_j = dh_j_dt @ dt_ddelta + through_pixel(dh_j_dpixel, w.pixel_jacobian)
+    dh_j = dh_j_dt @ dt_ddelta + chain(chain(dh_j_dP, dP_dpixel), w.pixel_jacobian)
     jacobian = (dh_i_dx @ dx_ddelta - dh_j)[:, None, :]
     return Residuals((h_i - h_j)[:, None], jacobian)
 
@@ -234,6 +232,6 @@ def point_to_plane_residuals(w: Warp, samples: PairSamples, noise: tuple[float, 
     P_j, dP_dpixel = target_points(w, samples.K)
     values = np.where(has_normal, np.sum(normals * (w.Q - P_j), axis=1), 0.0)
     # n^T dQ/d delta = n^T [I | -[Q]x] = [n, Q x n]
-    normal_pixel = np.sum(normals[:, :, None] * dP_dpixel, axis=1)
-    jacobian = np.concatenate([normals, np.cross(w.Q, normals)], axis=1) - through_pixel(normal_pixel, w.pixel_jacobian)
+    along_normal = np.concatenate([normals, np.cross(w.Q, normals)], axis=1)
+    jacobian = along_normal - chain(chain(normals, dP_dpixel), w.pixel_jacobian)
     return Residuals(np.nan_to_num(values)[:, None], np.nan_to_num(jacobian)[:, None, :])
