@@ -31,6 +31,7 @@ from .tiles import TILE
 
 POSE_CHUNK = 1024
 SCAN_CHUNK = 128
+COUNT_CHUNKS = 16  # runs of slots that the sort's counting pass splits into (fixed: the same result on any machine)
 
 
 def np_dtype(dtype) -> type:
@@ -56,13 +57,13 @@ def to_device(arr: np.ndarray, dtype) -> ti.Ndarray:
 @functools.cache
 def _kernels(dt) -> SimpleNamespace:
     proj_f = project.make(dt)
-    tile_f = tiles.make(dt)
     blend_f = rasterize.make(dt)
     mat4 = ti.types.matrix(4, 4, dt)
     vec4 = ti.types.vector(4, dt)
     vec3 = ti.types.vector(3, dt)
     fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
     ind = lambda ndim: ti.types.ndarray(dtype=ti.i32, ndim=ndim)  # noqa: E731
+    kind = lambda ndim: ti.types.ndarray(dtype=ti.i64, ndim=ndim)  # noqa: E731
     spread = runtime.loop_spread()  # per-tile loops: n_tiles x spread indices (see loop_spread)
 
     # Shapes: N Gaussians, M SH coefficients, S tile slots (one per Gaussian per tile it touches),
@@ -125,42 +126,52 @@ def _kernels(dt) -> SimpleNamespace:
         offsets: ind(1),  # (N + 1,)
         slot_gid: ind(1),  # out (S,): the Gaussian of each slot
         slot_tile: ind(1),  # out (S,): the tile of each slot
-        tile_cursor: ind(1),  # scratch (T,)
+        tile_cursor: ind(2),  # scratch (COUNT_CHUNKS, T)
         tile_start: ind(1),  # out (T + 1,): first sorted slot of each tile; tile_start[T] = S
-        keys: fnd(1),  # out (S,): depth keys, sorted within each tile
+        keys: kind(1),  # scratch (S,): (depth, slot) keys (tiles.depth_slot_key), sorted within each tile
+        tmp_keys: kind(1),  # scratch (S,)
         order: ind(1),  # out (S,): slot index at each sorted position
-        tmp_keys: fnd(1),  # scratch (S,)
-        tmp_order: ind(1),  # scratch (S,)
         entries: fnd(2),  # out (S, E_WIDTH): the sorted slots' screen records and tile boxes
     ):
         for g in range(n):
             tiles.emit_slots(g, rect, offsets, slot_gid, slot_tile, tiles_x)
-        # counting sort of the slots by tile, on one thread: two threads' atomic counters on a few hundred
-        # tiles cost more than the whole pass (BENCHMARKS, "The render's sort without atomics")
+        # stable counting sort of the slots by tile: each of COUNT_CHUNKS runs of slots counts its tiles in its own
+        # row of tile_cursor (no atomics: two threads' atomic counters on a few hundred tiles cost more than the
+        # whole pass), one thread turns the counts into each run's first position per tile, then the runs place
+        # their slots' (depth, slot) keys side by side; each tile's keys are then sorted as integers
+        chunk_length = (n_slots + COUNT_CHUNKS - 1) // COUNT_CHUNKS
+        for i in range(COUNT_CHUNKS * spread):
+            if i % spread == 0:
+                c = i // spread
+                for t in range(n_tiles):
+                    tile_cursor[c, t] = 0
+                for s in range(c * chunk_length, ti.min(n_slots, (c + 1) * chunk_length)):
+                    t = slot_tile[s]
+                    tile_cursor[c, t] = tile_cursor[c, t] + 1
         ti.loop_config(serialize=True)
         for _ in range(1):
-            for t in range(n_tiles):
-                tile_cursor[t] = 0
-            for s in range(n_slots):
-                t = slot_tile[s]
-                tile_cursor[t] = tile_cursor[t] + 1
             running = 0
             for t in range(n_tiles):
-                count = tile_cursor[t]
                 tile_start[t] = running
-                tile_cursor[t] = running
-                running += count
+                for c in range(COUNT_CHUNKS):
+                    count = tile_cursor[c, t]
+                    tile_cursor[c, t] = running
+                    running += count
             tile_start[n_tiles] = running
-            for s in range(n_slots):
-                t = slot_tile[s]
-                pos = tile_cursor[t]
-                tile_cursor[t] = pos + 1
-                keys[pos] = proj[slot_gid[s], project.P_DEPTH]
-                order[pos] = s
+        for i in range(COUNT_CHUNKS * spread):
+            if i % spread == 0:
+                c = i // spread
+                for s in range(c * chunk_length, ti.min(n_slots, (c + 1) * chunk_length)):
+                    t = slot_tile[s]
+                    pos = tile_cursor[c, t]
+                    tile_cursor[c, t] = pos + 1
+                    keys[pos] = tiles.depth_slot_key(proj[slot_gid[s], project.P_DEPTH], s)
         for i in range(n_tiles * spread):
             if i % spread == 0:
                 t = i // spread
-                tile_f.sort_segment(keys, order, tmp_keys, tmp_order, tile_start[t], tile_start[t + 1])
+                tiles.sort_segment(keys, tmp_keys, tile_start[t], tile_start[t + 1])
+        for j in range(n_slots):
+            order[j] = tiles.key_slot(keys[j])
         for j in range(n_slots):
             blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
 
@@ -263,7 +274,7 @@ def _grown(arr, need: int, dtype, tail: tuple = ()):
     device's per-buffer limit says so; :class:`BackendError` when ``need`` rows exceed it)."""
     if arr is not None and arr.shape[0] >= need:
         return arr
-    row_bytes = math.prod(tail) * (8 if dtype == ti.f64 else 4)
+    row_bytes = math.prod(tail) * (8 if dtype in (ti.f64, ti.i64) else 4)
     runtime.check_buffer(need * row_bytes, f"a rasterizer buffer of {need} x {tail or 1}")
     rows = max(int(need * 1.5), 16)
     backend = runtime.current()
@@ -368,7 +379,7 @@ class View:
     def __init__(self, dtype) -> None:
         self.dtype = dtype
         self.proj = self.rect = self.offsets = self.chunk_base = None
-        self.slot_gid = self.slot_tile = self.keys = self.order = self.tmp_keys = self.tmp_order = None
+        self.slot_gid = self.slot_tile = self.keys = self.tmp_keys = self.order = None
         self.entries = None
         self.tile_cursor = self.tile_start = None
         self.scratch = scan.Scratch()  # the GPU path's per-view buffers (raster_gpu)
@@ -388,7 +399,7 @@ class View:
             self.transmittance = ti.ndarray(dt, (height, width))
             self.last = ti.ndarray(ti.i32, (height, width))
             tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-            self.tile_cursor = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
+            self.tile_cursor = ti.ndarray(ti.i32, (COUNT_CHUNKS, tiles_x * tiles_y))
             self.tile_start = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
             self.size = (width, height)
 
@@ -495,15 +506,15 @@ class Rasterizer:
         )
         n_slots = int(v.offsets[n])
         clock("project")
-        for name, dtype in (("slot_gid", ti.i32), ("slot_tile", ti.i32), ("keys", self.dtype),
-                            ("order", ti.i32), ("tmp_keys", self.dtype), ("tmp_order", ti.i32)):
+        for name, dtype in (("slot_gid", ti.i32), ("slot_tile", ti.i32), ("keys", ti.i64), ("tmp_keys", ti.i64),
+                            ("order", ti.i32)):
             setattr(v, name, _grown(getattr(v, name), n_slots, dtype))
         v.entries = _grown(v.entries, n_slots, self.dtype, (E_WIDTH,))
         tiles_x = -(-width // TILE)
         n_tiles = tiles_x * -(-height // TILE)
         self.k.bin_and_sort(
             n, n_slots, tiles_x, n_tiles, v.proj, v.rect, v.offsets,
-            v.slot_gid, v.slot_tile, v.tile_cursor, v.tile_start, v.keys, v.order, v.tmp_keys, v.tmp_order,
+            v.slot_gid, v.slot_tile, v.tile_cursor, v.tile_start, v.keys, v.tmp_keys, v.order,
             v.entries,
         )
         clock("sort")

@@ -9,9 +9,6 @@ The backward pass writes per-slot gradients, so a Gaussian's gradient is a conti
 sum without atomics.
 """
 
-import functools
-from types import SimpleNamespace
-
 import taichi as ti
 
 Array = ti.template()  # an ndarray argument of a ti.func (passed by reference)
@@ -49,61 +46,65 @@ def emit_slots(g, rect: Array, offsets: Array, slot_gid: Array, slot_tile: Array
                 s += 1
 
 
-@functools.cache
-def make(dt) -> SimpleNamespace:
-    """Per-tile depth sort for float key type ``dt``."""
+SLOT_BITS = 32  # a sort key's low bits: the slot id; the high bits: the float32 depth's bit pattern
 
-    @ti.func
-    def before(ka, va, kb, vb):
-        return ka < kb or (ka == kb and va < vb)
 
-    @ti.func
-    def merge(src_k: Array, src_v: Array, dst_k: Array, dst_v: Array, lo, mid, hi):
-        i, j = lo, mid
-        for out in range(lo, hi):
-            if j >= hi or (i < mid and not before(src_k[j], src_v[j], src_k[i], src_v[i])):
-                dst_k[out] = src_k[i]
-                dst_v[out] = src_v[i]
-                i += 1
+@ti.func
+def depth_slot_key(depth, slot):
+    """A slot's 64-bit sort key: the bits of its float32 depth above its slot id. Positive floats order
+    as their bit patterns do, so sorting the keys as integers sorts by (float32 depth, slot)."""
+    depth_bits = ti.bit_cast(ti.cast(depth, ti.f32), ti.i32)
+    return (ti.cast(depth_bits, ti.i64) << SLOT_BITS) | ti.cast(slot, ti.i64)
+
+
+@ti.func
+def key_slot(key):
+    """The slot id of a :func:`depth_slot_key`."""
+    return ti.cast(key & ti.i64((1 << SLOT_BITS) - 1), ti.i32)
+
+
+@ti.func
+def merge(src: Array, dst: Array, lo, mid, hi):
+    """Merge the sorted runs src[lo:mid] and src[mid:hi] into dst[lo:hi]."""
+    i, j = lo, mid
+    for out in range(lo, hi):
+        if j >= hi or (i < mid and src[i] <= src[j]):
+            dst[out] = src[i]
+            i += 1
+        else:
+            dst[out] = src[j]
+            j += 1
+
+
+@ti.func
+def sort_segment(keys: Array, tmp: Array, lo, hi):
+    """Sort keys[lo:hi] (distinct integers): insertion-sorted runs, then bottom-up merges ping-ponging
+    through tmp."""
+    n = hi - lo
+    n_runs = (n + INSERTION_RUN - 1) // INSERTION_RUN
+    for r in range(n_runs):
+        a = lo + r * INSERTION_RUN
+        b = ti.min(a + INSERTION_RUN, hi)
+        for i in range(a + 1, b):
+            k = keys[i]
+            j = i - 1
+            while j >= a and k < keys[j]:
+                keys[j + 1] = keys[j]
+                j -= 1
+            keys[j + 1] = k
+    width = INSERTION_RUN
+    in_tmp = False
+    while width < n:
+        for r in range((n + 2 * width - 1) // (2 * width)):
+            a = lo + r * 2 * width
+            mid = ti.min(a + width, hi)
+            b = ti.min(a + 2 * width, hi)
+            if in_tmp:
+                merge(tmp, keys, a, mid, b)
             else:
-                dst_k[out] = src_k[j]
-                dst_v[out] = src_v[j]
-                j += 1
-
-    @ti.func
-    def sort_segment(keys: Array, vals: Array, tmp_k: Array, tmp_v: Array, lo, hi):
-        """Sort keys[lo:hi] (with vals) by (key, val): insertion-sorted runs, then bottom-up
-        merges ping-ponging through tmp_k / tmp_v."""
-        n = hi - lo
-        n_runs = (n + INSERTION_RUN - 1) // INSERTION_RUN
-        for r in range(n_runs):
-            a = lo + r * INSERTION_RUN
-            b = ti.min(a + INSERTION_RUN, hi)
-            for i in range(a + 1, b):
-                k, v = keys[i], vals[i]
-                j = i - 1
-                while j >= a and before(k, v, keys[j], vals[j]):
-                    keys[j + 1] = keys[j]
-                    vals[j + 1] = vals[j]
-                    j -= 1
-                keys[j + 1] = k
-                vals[j + 1] = v
-        width = INSERTION_RUN
-        in_tmp = False
-        while width < n:
-            for r in range((n + 2 * width - 1) // (2 * width)):
-                a = lo + r * 2 * width
-                mid = ti.min(a + width, hi)
-                b = ti.min(a + 2 * width, hi)
-                if in_tmp:
-                    merge(tmp_k, tmp_v, keys, vals, a, mid, b)
-                else:
-                    merge(keys, vals, tmp_k, tmp_v, a, mid, b)
-            in_tmp = not in_tmp
-            width *= 2
-        if in_tmp:
-            for i in range(lo, hi):
-                keys[i] = tmp_k[i]
-                vals[i] = tmp_v[i]
-
-    return SimpleNamespace(sort_segment=sort_segment)
+                merge(keys, tmp, a, mid, b)
+        in_tmp = not in_tmp
+        width *= 2
+    if in_tmp:
+        for i in range(lo, hi):
+            keys[i] = tmp[i]
