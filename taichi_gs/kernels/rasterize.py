@@ -69,9 +69,10 @@ def make(dt) -> SimpleNamespace:
         return ti.Vector([x0, y0, ti.min(x0 + TILE, width) - 1, ti.min(y0 + TILE, height) - 1])
 
     @ti.func
-    def pixel_record(v, u, width, columns: ti.template()):
-        """Flat index of pixel (v, u)'s first value in a per-pixel state of ``columns`` values per pixel."""
-        return (v * width + u) * columns
+    def pixel_record(v, u, t, box, columns: ti.template()):
+        """Flat index of pixel (v, u)'s first value in a per-pixel state of ``columns`` values per pixel, tile t
+        (pixel box ``box``) holding TILE x TILE consecutive pixels: a tile's state is one contiguous block."""
+        return (t * TILE * TILE + (v - box[1]) * TILE + (u - box[0])) * columns
 
     @ti.func
     def gather_entry(j, order: Array, slot_gid: Array, proj: Array, rect: Array,
@@ -135,12 +136,12 @@ def make(dt) -> SimpleNamespace:
         state: Array, out_rgb: Array, out_depth: Array, out_trans: Array,
         out_last: Array, with_colour: ti.template(),
     ):
-        """Blend tile t front to back. ``state`` (flat, F_WIDTH values per pixel of the image) holds the
+        """Blend tile t front to back. ``state`` (flat, F_WIDTH values per pixel, see pixel_record) holds the
         running (T, r, g, b, depth, last) of each pixel, T negated once the pixel is finished. Without
         ``with_colour`` (static) the colour sums are skipped and ``out_rgb`` is written black."""
         box = tile_pixels(t, tiles_x, width, height)
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            p = pixel_record(v, u, width, F_WIDTH)
+            p = pixel_record(v, u, t, box, F_WIDTH)
             state[p + F_TRANS] = 1.0
             for c in ti.static(range(1, F_WIDTH)):
                 state[p + c] = 0.0
@@ -160,7 +161,7 @@ def make(dt) -> SimpleNamespace:
             for v in range(eb[1], eb[3] + 1):
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
-                    p = pixel_record(v, u, width, F_WIDTH)
+                    p = pixel_record(v, u, t, box, F_WIDTH)
                     trans = state[p + F_TRANS]
                     if trans > 0.0:
                         power = splat_at(sg, u, v)[0]
@@ -180,7 +181,7 @@ def make(dt) -> SimpleNamespace:
                                     state[p + F_TRANS] = next_trans
                                     state[p + F_LAST] = local
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            p = pixel_record(v, u, width, F_WIDTH)
+            p = pixel_record(v, u, t, box, F_WIDTH)
             trans = ti.abs(state[p + F_TRANS])
             for c in ti.static(range(3)):
                 if ti.static(with_colour):
@@ -198,13 +199,13 @@ def make(dt) -> SimpleNamespace:
         d_alpha: Array, state: Array, slot_grad: Array, with_colour: ti.template(),
     ):
         """Write dL/d(screen record) of every slot of tile t into slot_grad[slot, :]. ``state`` (flat,
-        B_WIDTH values per pixel of the image) packs each pixel's running T, running sum behind, image
+        B_WIDTH values per pixel, see pixel_record) packs each pixel's running T, running sum behind, image
         gradients and last contributor (see the B_* columns). Without ``with_colour`` (static,
         a depth-and-alpha render) the colour terms are skipped and the slots' colour gradients are 0."""
         box = tile_pixels(t, tiles_x, width, height)
         last = -1
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
-            p = pixel_record(v, u, width, B_WIDTH)
+            p = pixel_record(v, u, t, box, B_WIDTH)
             final_trans = out_trans[v, u]
             g_rgb = vec3(d_rgb[v, u, 0], d_rgb[v, u, 1], d_rgb[v, u, 2])
             state[p + B_TRANS] = final_trans
@@ -236,7 +237,7 @@ def make(dt) -> SimpleNamespace:
             for v in range(eb[1], eb[3] + 1):
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
-                    p = pixel_record(v, u, width, B_WIDTH)
+                    p = pixel_record(v, u, t, box, B_WIDTH)
                     if local <= state[p + B_LAST]:
                         s = splat_at(sg, u, v)
                         power = s[0]

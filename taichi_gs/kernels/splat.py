@@ -567,11 +567,12 @@ class Rasterizer:
         return s["pose_grad"].to_numpy().astype(np.float64)
 
     def _state(self, columns: int, width: int, height: int) -> ti.Ndarray:
-        """Per-pixel scratch of the blending passes, shared by all views: flat, ``columns`` values per pixel in
-        row-major pixel order (one index computation per pixel in the blending loops)."""
+        """Per-pixel scratch of the blending passes, shared by all views: flat, ``columns`` values per pixel, each
+        tile's TILE x TILE pixels in one contiguous block (``rasterize.pixel_record``)."""
         key = ("state", columns, width, height)
         if key not in self._scratch:
-            self._scratch[key] = ti.ndarray(self.dtype, (height * width * columns,))
+            tiles = -(-width // TILE) * -(-height // TILE)
+            self._scratch[key] = ti.ndarray(self.dtype, (tiles * TILE * TILE * columns,))
         return self._scratch[key]
 
     def _zero_if_none(self, arr, shape: tuple):
