@@ -85,7 +85,7 @@ def make(dt) -> SimpleNamespace:
             )
             key = INF_BITS
             if rect[g, 0] <= rect[g, 2]:
-                key = ti.bit_cast(ti.cast(proj[g, P_DEPTH], ti.f32), ti.i32)
+                key = tiles.depth_bits(proj[g, P_DEPTH])
             depth_keys[g] = key
             ids[g] = g
 

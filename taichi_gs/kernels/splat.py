@@ -31,7 +31,7 @@ from .tiles import TILE
 
 POSE_CHUNK = 1024
 SCAN_CHUNK = 128
-COUNT_CHUNKS = 16  # runs of slots that the sort's counting pass splits into (fixed: the same result on any machine)
+COUNT_RUNS = 16  # runs of slots that the sort's counting pass splits into (fixed: the same result on any machine)
 
 
 def np_dtype(dtype) -> type:
@@ -126,7 +126,7 @@ def _kernels(dt) -> SimpleNamespace:
         offsets: ind(1),  # (N + 1,)
         slot_gid: ind(1),  # out (S,): the Gaussian of each slot
         slot_tile: ind(1),  # out (S,): the tile of each slot
-        tile_cursor: ind(2),  # scratch (COUNT_CHUNKS, T)
+        tile_cursor: ind(2),  # scratch (COUNT_RUNS, T)
         tile_start: ind(1),  # out (T + 1,): first sorted slot of each tile; tile_start[T] = S
         keys: kind(1),  # scratch (S,): (depth, slot) keys (tiles.depth_slot_key), sorted within each tile
         tmp_keys: kind(1),  # scratch (S,)
@@ -135,18 +135,18 @@ def _kernels(dt) -> SimpleNamespace:
     ):
         for g in range(n):
             tiles.emit_slots(g, rect, offsets, slot_gid, slot_tile, tiles_x)
-        # stable counting sort of the slots by tile: each of COUNT_CHUNKS runs of slots counts its tiles in its own
+        # stable counting sort of the slots by tile: each of COUNT_RUNS runs of slots counts its tiles in its own
         # row of tile_cursor (no atomics: two threads' atomic counters on a few hundred tiles cost more than the
         # whole pass; BENCHMARKS, "The render's sort without atomics"), one thread turns the counts into each run's
         # first position per tile, then the runs place their slots' (depth, slot) keys side by side; each tile's
         # keys are then sorted as integers
-        chunk_length = (n_slots + COUNT_CHUNKS - 1) // COUNT_CHUNKS
-        for i in range(COUNT_CHUNKS * spread):
+        for i in range(COUNT_RUNS * spread):
             if i % spread == 0:
                 c = i // spread
                 for t in range(n_tiles):
                     tile_cursor[c, t] = 0
-                for s in range(c * chunk_length, ti.min(n_slots, (c + 1) * chunk_length)):
+                first, end = tiles.run_bounds(c, COUNT_RUNS, n_slots)
+                for s in range(first, end):
                     t = slot_tile[s]
                     tile_cursor[c, t] = tile_cursor[c, t] + 1
         ti.loop_config(serialize=True)
@@ -154,15 +154,16 @@ def _kernels(dt) -> SimpleNamespace:
             running = 0
             for t in range(n_tiles):
                 tile_start[t] = running
-                for c in range(COUNT_CHUNKS):
+                for c in range(COUNT_RUNS):
                     count = tile_cursor[c, t]
                     tile_cursor[c, t] = running
                     running += count
             tile_start[n_tiles] = running
-        for i in range(COUNT_CHUNKS * spread):
+        for i in range(COUNT_RUNS * spread):
             if i % spread == 0:
                 c = i // spread
-                for s in range(c * chunk_length, ti.min(n_slots, (c + 1) * chunk_length)):
+                first, end = tiles.run_bounds(c, COUNT_RUNS, n_slots)
+                for s in range(first, end):
                     t = slot_tile[s]
                     pos = tile_cursor[c, t]
                     tile_cursor[c, t] = pos + 1
@@ -400,7 +401,7 @@ class View:
             self.transmittance = ti.ndarray(dt, (height, width))
             self.last = ti.ndarray(ti.i32, (height, width))
             tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-            self.tile_cursor = ti.ndarray(ti.i32, (COUNT_CHUNKS, tiles_x * tiles_y))
+            self.tile_cursor = ti.ndarray(ti.i32, (COUNT_RUNS, tiles_x * tiles_y))
             self.tile_start = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
             self.size = (width, height)
 

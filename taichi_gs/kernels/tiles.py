@@ -50,11 +50,24 @@ SLOT_BITS = 32  # a sort key's low bits: the slot id; the high bits: the float32
 
 
 @ti.func
+def depth_bits(depth):
+    """The bit pattern of ``depth`` as a float32: positive floats order as these integers do (both paths'
+    depth sort keys)."""
+    return ti.bit_cast(ti.cast(depth, ti.f32), ti.i32)
+
+
+@ti.func
 def depth_slot_key(depth, slot):
-    """A slot's 64-bit sort key: the bits of its float32 depth above its slot id. Positive floats order
-    as their bit patterns do, so sorting the keys as integers sorts by (float32 depth, slot)."""
-    depth_bits = ti.bit_cast(ti.cast(depth, ti.f32), ti.i32)
-    return (ti.cast(depth_bits, ti.i64) << SLOT_BITS) | ti.cast(slot, ti.i64)
+    """A slot's 64-bit sort key: its :func:`depth_bits` above its slot id, so sorting the keys as integers
+    sorts by (float32 depth, slot)."""
+    return (ti.cast(depth_bits(depth), ti.i64) << SLOT_BITS) | ti.cast(slot, ti.i64)
+
+
+@ti.func
+def run_bounds(run, runs, n):
+    """(first, end) of run ``run`` of ``runs`` consecutive runs that split 0..n."""
+    length = (n + runs - 1) // runs
+    return run * length, ti.min(n, (run + 1) * length)
 
 
 @ti.func
