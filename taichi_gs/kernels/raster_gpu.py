@@ -428,8 +428,8 @@ class GpuPipeline:
                             s.get("scan_work", scan.scan_work_size(n)))
         n_slots = int(view.depth_offsets[n])
         clock("project")
-        tiles_x = -(-width // TILE)
-        n_tiles = tiles_x * -(-height // TILE)
+        tiles_x, tiles_y = tiles.tile_grid(width, height)
+        n_tiles = tiles_x * tiles_y
         tile_keys, slot_ids, view.slot_gid = s.get("tile_keys", n_slots), s.get("slot_ids", n_slots), \
             s.get("slot_gid", n_slots)
         self.k.emit_slots(n, tiles_x, view.depth_order, view.rect, view.depth_offsets, tile_keys, slot_ids, view.slot_gid)
@@ -451,8 +451,8 @@ class GpuPipeline:
         n = gaussians.n
         s = self.scratch
         slot_grad = s.get("slot_grad", view.n_slots, self.dtype, (N_SLOT_GRADS,))
-        tiles_x = -(-width // TILE)
-        n_tiles = tiles_x * -(-height // TILE)
+        tiles_x, tiles_y = tiles.tile_grid(width, height)
+        n_tiles = tiles_x * tiles_y
         self.k.blend_backward(tiles_x, n_tiles, width, height, view.tile_range, view.order, view.entries, bg,
                               view.transmittance, view.last, d_rgb, d_depth, d_alpha, view.n_slots, slot_grad,
                               self.subgroup)

@@ -400,7 +400,7 @@ class View:
             self.depth = ti.ndarray(dt, (height, width))
             self.transmittance = ti.ndarray(dt, (height, width))
             self.last = ti.ndarray(ti.i32, (height, width))
-            tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+            tiles_x, tiles_y = tiles.tile_grid(width, height)
             self.tile_cursor = ti.ndarray(ti.i32, (COUNT_RUNS, tiles_x * tiles_y))
             self.tile_start = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
             self.size = (width, height)
@@ -512,8 +512,8 @@ class Rasterizer:
                             ("order", ti.i32)):
             setattr(v, name, _grown(getattr(v, name), n_slots, dtype))
         v.entries = _grown(v.entries, n_slots, self.dtype, (E_WIDTH,))
-        tiles_x = -(-width // TILE)
-        n_tiles = tiles_x * -(-height // TILE)
+        tiles_x, tiles_y = tiles.tile_grid(width, height)
+        n_tiles = tiles_x * tiles_y
         self.k.bin_and_sort(
             n, n_slots, tiles_x, n_tiles, v.proj, v.rect, v.offsets,
             v.slot_gid, v.slot_tile, v.tile_cursor, v.tile_start, v.keys, v.tmp_keys, v.order,
@@ -551,8 +551,8 @@ class Rasterizer:
         s["pose_chunks"] = _grown(s.get("pose_chunks"), math.ceil(n / POSE_CHUNK) + 1, self.dtype, (6,))
         if "pose_grad" not in s:
             s["pose_grad"] = ti.ndarray(self.dtype, (6,))
-        tiles_x = -(-width // TILE)
-        n_tiles = tiles_x * -(-height // TILE)
+        tiles_x, tiles_y = tiles.tile_grid(width, height)
+        n_tiles = tiles_x * tiles_y
         cam, intr = camera_args(view.camera, self.dtype)
         bg = ti.Vector([float(b) for b in view.background], dt=self.dtype)
         p, g = gaussians.params, gaussians.grads
@@ -573,8 +573,8 @@ class Rasterizer:
         tile's TILE x TILE pixels in one contiguous block (``rasterize.pixel_record``)."""
         key = ("state", columns, width, height)
         if key not in self._scratch:
-            tiles = -(-width // TILE) * -(-height // TILE)
-            self._scratch[key] = ti.ndarray(self.dtype, (tiles * TILE * TILE * columns,))
+            tiles_x, tiles_y = tiles.tile_grid(width, height)
+            self._scratch[key] = ti.ndarray(self.dtype, (tiles_x * tiles_y * TILE * TILE * columns,))
         return self._scratch[key]
 
     def _zero_if_none(self, arr, shape: tuple):

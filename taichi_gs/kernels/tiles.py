@@ -17,6 +17,11 @@ TILE = 16
 INSERTION_RUN = 16
 
 
+def tile_grid(width: int, height: int) -> tuple[int, int]:
+    """(tiles_x, tiles_y): the TILE x TILE tiles that cover a width x height image."""
+    return -(-width // TILE), -(-height // TILE)
+
+
 @ti.func
 def tile_box(rect: Array, g):
     """Inclusive tile range (tx0, ty0, tx1, ty1) of Gaussian g's pixel box."""
