@@ -236,8 +236,7 @@ class BlurScene:
                    colour: np.ndarray | None = None) -> np.ndarray:
         """[ours] Each Gaussian's share of one frame's re-blur error: sum over pixels of its blending
         weight in each virtual view times the pixel's absolute error (summed over channels, over the
-        sourced pixels), averaged over the k views. Read from a backward pass whose colour gradient is
-        that error, through the degree-0 colour's gradient (d rgb / d dc = blending weight x SH_C0)."""
+        sourced pixels), averaged over the k views."""
         views = _RenderedExposure(self, base, d_start, d_end, exposure_taus(k)).views
         predicted = self.blurred
         if colour is not None:
@@ -246,13 +245,28 @@ class BlurScene:
         error = np.abs(predicted.to_numpy() - frame).sum(axis=2)
         if self.sourced is not None:
             error = error * self.sourced
-        self.grad_view.from_numpy(np.repeat(error[..., None] / k, 3, axis=2).astype(np.float32))
+        return np.maximum(self._blending_mass(views, error / k), 0.0)
+
+    def blending_weights(self, poses: list[np.ndarray]) -> np.ndarray:
+        """[ours] Each Gaussian's blending weight summed over the (sourced) pixels of sharp renders at
+        ``poses``: how much of the images it makes (LightGaussian's global significance)."""
+        pixels = np.ones((self.height, self.width)) if self.sourced is None else self.sourced
+        mass = np.zeros(self.count)
+        for pose in poses:
+            mass += self._blending_mass([self.rasterizer.forward(self.gaussians, self.camera(pose))], pixels)
+        return np.maximum(mass, 0.0)
+
+    def _blending_mass(self, views: list, pixel_weights: np.ndarray) -> np.ndarray:
+        """Per Gaussian, the sum over ``views`` and pixels of its blending weight times ``pixel_weights``
+        (H, W). Read from a backward pass whose colour gradient is those weights, through the degree-0
+        colour's gradient (d rgb / d dc = blending weight x SH_C0)."""
+        self.grad_view.from_numpy(np.repeat(np.asarray(pixel_weights)[..., None], 3, axis=2).astype(np.float32))
         self.gaussians.zero_grad()
         for view in views:
             self.rasterizer.backward(self.gaussians, view, d_rgb=self.grad_view)
         mass = self.gaussians.grads["colors"].to_numpy()[: self.count, 0].sum(axis=1) / (3 * SH_C0)
         self.gaussians.zero_grad()
-        return np.maximum(mass, 0.0)
+        return mass
 
     def render(self, cam_to_world: np.ndarray, min_alpha: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
         """Sharp colour (H, W, 3) and depth (H, W) at one pose, as NumPy; the depth is the blended z

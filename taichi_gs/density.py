@@ -43,6 +43,10 @@ class DensitySchedule:
         """True when ``done`` iterations end a densification interval inside the window."""
         return self.densify_from <= done <= self.densify_until and done % self.densify_every == 0
 
+    def last_densification(self, done: int) -> bool:
+        """True when ``done`` iterations end the window's last densification interval."""
+        return self.densifies(done) and done + self.densify_every > self.densify_until
+
     def observes(self, done: int) -> bool:
         """True while the statistics of the step that ends at ``done`` iterations can still feed a
         densification (after the window nobody reads them)."""
@@ -117,6 +121,18 @@ class DensityControl:
         self.grad_count = np.zeros(store.count)
         return len(grow), removed
 
+    def drop_lightest(self, store: GaussianStore, weights: np.ndarray, share: float) -> int:
+        """[ours] Drop the Gaussians of least blending weight (``weights``, one per Gaussian, e.g. summed over
+        the training views: LightGaussian's global significance) that together carry at most ``share`` of
+        the total; resets the statistics. Returns how many were dropped."""
+        keep = heavier_than_share(weights, share)
+        if keep.all():
+            return 0
+        store.keep(keep)
+        self.grad_sum = np.zeros(store.count)
+        self.grad_count = np.zeros(store.count)
+        return int((~keep).sum())
+
     def split_oversized(self, store: GaussianStore, max_scale: np.ndarray, max_gaussians: int,
                         rng: np.random.Generator) -> int:
         """[ours] Split every Gaussian whose largest scale exceeds its ``max_scale`` (metres, one per
@@ -177,6 +193,21 @@ def prune(store: GaussianStore, min_opacity: float, max_scale: float = np.inf) -
         return 0
     store.keep(keep)
     return int((~keep).sum())
+
+
+def heavier_than_share(weights: np.ndarray, share: float) -> np.ndarray:
+    """Mask of the rows to keep: all but the lightest ones (ties broken by index) whose weights sum to at
+    most ``share`` of the total; at least one row is kept."""
+    weights = np.maximum(np.asarray(weights, np.float64), 0.0)
+    total = weights.sum()
+    if total <= 0:
+        return np.ones(len(weights), bool)
+    order = np.argsort(weights, kind="stable")
+    light = np.cumsum(weights[order]) <= share * total
+    light[-1:] = False
+    keep = np.ones(len(weights), bool)
+    keep[order[light]] = False
+    return keep
 
 
 def reset_opacity(store: GaussianStore, opacity: float) -> None:

@@ -101,6 +101,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "coarse_scale": COUNT, "coarse_fraction": FRACTION, "k_min": COUNT,
         "early_views_fraction": FRACTION, "early_step_scale": _at_least(1.0),
         "densify_by": _one_of("gradient", "error", "both"), "error_densify_share": FRACTION,
+        "prune_weight_share": FRACTION,
         "error_densify_frames": COUNT, "warp_px": _within(0.5, 64), "test_fit_refresh_px": NON_NEGATIVE,
     },
 }

@@ -257,6 +257,41 @@ def test_densification_statistics_are_gathered_only_while_a_densification_can_re
     assert len(calls) == 15
 
 
+def test_significance_pruning_drops_the_lightest_share_once_after_the_last_densification(tmp_path, monkeypatch):
+    """With ``prune_weight_share``, the densification at 15 (the last of 5, 10, 15) is followed by one
+    drop of the Gaussians of least blending weight over the training views, up to that share of it;
+    nothing grows afterwards, so the run ends with what the drop kept."""
+    from taichi_gs.deblur_model import BlurScene
+    from taichi_gs.density import DensityControl, heavier_than_share
+    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.standins import write_refine_outputs
+
+    synth.generate(synth.SynthConfig(width=48, height=36, frames=4, trajectory="handheld", blur="extreme", seed=2),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    write_refine_outputs(sequence, tmp_path / "run", voxel=0.06)
+    config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=24, densify_from=5,
+                                 densify_until=17, densify_every=5, densify_grad=1e9, fill_uncovered=False,
+                                 test_pose_iterations=0, prune_weight_share=0.2)
+    steps: list[int] = []
+    drops: list[tuple[int, int, int]] = []
+    step, drop = BlurScene.step, DensityControl.drop_lightest
+    monkeypatch.setattr(BlurScene, "step", lambda self, *a, **k: (steps.append(1), step(self, *a, **k))[1])
+
+    def recorded_drop(self, store, weights, share):
+        count = store.count
+        dropped = drop(self, store, weights, share)
+        drops.append((len(steps), count, dropped))
+        assert share == 0.2 and dropped == int((~heavier_than_share(weights, share)).sum()) > 0
+        return dropped
+
+    monkeypatch.setattr(DensityControl, "drop_lightest", recorded_drop)
+    result = run_deblur(sequence, tmp_path / "run", config)
+    assert [d[0] for d in drops] == [15]
+    _, count, dropped = drops[0]
+    assert result.gaussians == count - dropped
+
+
 def test_the_k_warning_at_its_edge_names_the_worst_frame_to_the_hundredth_of_a_pixel() -> None:
     """k = 7 at 2 px steps covers a 12 px exposure: 12.24 px warns (2.04 px steps, k = 8 fits), 12 px does not."""
     from taichi_gs.stages.deblur import DeblurConfig, _Frames, _step_warnings

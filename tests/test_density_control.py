@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from taichi_gs.deblur_model import TRAINED, BlurScene
-from taichi_gs.density import reset_opacity
+from taichi_gs.density import DensitySchedule, heavier_than_share, reset_opacity
 from taichi_gs.geometry import quat_to_rotmat
 from taichi_gs.splats import Splats, logit
 
@@ -271,3 +271,37 @@ def test_observe_adds_each_gaussians_gradient_in_pixels_and_skips_the_unseen():
     np.testing.assert_allclose(model.density.grad_sum[seen], sums[seen] + expected[seen], rtol=1e-6)
     np.testing.assert_array_equal(model.density.grad_count, counts + seen)
     assert model.density.grad_sum[2] == sums[2]
+
+
+def test_the_lightest_gaussians_up_to_a_share_of_the_weight_are_dropped():
+    weights = np.array([5.0, 0.1, 3.0, 0.2, 0.0, 1.7])  # total 10: sorted 0.0, 0.1, 0.2, 1.7, 3.0, 5.0
+    np.testing.assert_array_equal(heavier_than_share(weights, 0.0), [1, 1, 1, 1, 0, 1])  # weightless rows only
+    np.testing.assert_array_equal(heavier_than_share(weights, 0.035), [1, 0, 1, 0, 0, 1])  # 0.35 of 10: three rows
+    np.testing.assert_array_equal(heavier_than_share(weights, 0.19), [1, 0, 1, 0, 0, 1])  # 1.7 more would pass it
+    np.testing.assert_array_equal(heavier_than_share(weights, 0.21), [1, 0, 1, 0, 0, 0])
+    np.testing.assert_array_equal(heavier_than_share(weights, 1.0), [1, 0, 0, 0, 0, 0])  # one is always kept
+    np.testing.assert_array_equal(heavier_than_share(np.zeros(3), 0.5), [1, 1, 1])  # nothing seen: keep all
+    np.testing.assert_array_equal(heavier_than_share(np.ones(4), 0.5), [0, 0, 1, 1])  # ties: lower rows first
+
+
+def test_drop_lightest_keeps_the_heavy_rows_with_their_moments_and_restarts_the_statistics():
+    model = _model()
+    before = model.arrays()
+    weights = np.array([4.0, 0.5, 9.0, 0.0, 0.3, 6.0])
+    assert model.density.drop_lightest(model.store, weights, 0.05) == 3  # 0.0 + 0.3 + 0.5 = 0.8 of 19.8
+    assert model.count == 3
+    for name in TRAINED:
+        np.testing.assert_array_equal(model.arrays()[name], before[name][[0, 2, 5]], err_msg=name)
+    first = model.store.adam.moments["means"][0].to_numpy()[: model.count, 0]
+    np.testing.assert_array_equal(first, [1, 3, 6])
+    np.testing.assert_array_equal(model.density.grad_sum, np.zeros(3))
+    assert model.density.drop_lightest(model.store, np.ones(3), 0.0) == 0
+
+
+def test_the_last_densification_is_the_last_interval_inside_the_window():
+    schedule = DensitySchedule(densify_from=70, densify_until=315, densify_every=70, grad_threshold_px=1.0,
+                               split_scale=0.01, prune_opacity=0.005, prune_scale=1.0, max_gaussians=10)
+    assert [done for done in range(1, 400) if schedule.densifies(done)] == [70, 140, 210, 280]
+    assert [done for done in range(1, 400) if schedule.last_densification(done)] == [280]
+    exact = DensitySchedule(70, 280, 70, 1.0, 0.01, 0.005, 1.0, 10)
+    assert [done for done in range(1, 400) if exact.last_densification(done)] == [280]

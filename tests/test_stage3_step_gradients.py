@@ -297,3 +297,30 @@ def test_error_mass_is_each_gaussians_blending_weight_times_the_error(problem):
                 moved.append((error * other.render_blurred(BASE, D_START, D_END, K_VIEWS)[..., c]).sum())
             total += (moved[0] - moved[1]) / (2 * h)
         assert mass[i] == pytest.approx(total / (3 * SH_C0), rel=2e-3, abs=1e-3 * mass.max())
+
+
+def test_blending_weights_are_each_gaussians_weight_summed_over_the_sourced_pixels_of_sharp_renders(problem):
+    """blending_weights(i) = sum over poses and sourced pixels of w_i(p), the derivative of the sourced pixels'
+    colour sum w.r.t. the Gaussian's degree-0 colour over SH_C0: checked by differences of renders."""
+    from taichi_gs.splats import SH_C0
+
+    splats = problem[0]
+    sourced = np.ones((HEIGHT, WIDTH), bool)
+    sourced[:, -6:] = False
+    poses = [BASE, virtual_pose(BASE, D_START, D_END, 1.0)]
+    model = BlurScene(splats, K, WIDTH, HEIGHT, precision="f64", sourced=sourced)
+    weights = model.blending_weights(poses)
+    assert weights.shape == (len(splats.means),) and (weights >= 0).all() and weights.max() > 0
+    h = 0.05
+    for i in np.argsort(-weights)[:3].tolist() + [int(np.argsort(weights)[len(weights) // 2])]:
+        total = 0.0
+        for c in range(3):
+            moved = []
+            for sign in (1, -1):
+                sh = splats.sh.copy()
+                sh[i, 0, c] += sign * h
+                other = BlurScene(Splats(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, sh),
+                                  K, WIDTH, HEIGHT, precision="f64")
+                moved.append(sum((other.render(pose)[0][..., c] * sourced).sum() for pose in poses))
+            total += (moved[0] - moved[1]) / (2 * h)
+        assert weights[i] == pytest.approx(total / (3 * SH_C0), rel=2e-3, abs=1e-3 * weights.max())
