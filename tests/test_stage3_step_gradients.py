@@ -271,12 +271,29 @@ def test_a_sourced_mask_leaves_unseen_pixels_out_of_the_step(problem):
     assert masked.losses["l1"] != pytest.approx(plain.losses["l1"], rel=1e-3)
 
 
+def _dc_derivative_over_sh_c0(splats: Splats, i: int, value_of) -> float:
+    """Sum over channels c of d value_of(scene, c) / d (Gaussian i's degree-0 colour c), by central
+    differences of float64 scenes, over 3 SH_C0: a Gaussian's blending weight where value_of is linear in
+    the rendered colour."""
+    from taichi_gs.splats import SH_C0
+
+    h, total = 0.05, 0.0
+    for c in range(3):
+        moved = []
+        for sign in (1, -1):
+            sh = splats.sh.copy()
+            sh[i, 0, c] += sign * h
+            other = BlurScene(Splats(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, sh),
+                              K, WIDTH, HEIGHT, precision="f64")
+            moved.append(value_of(other, c))
+        total += (moved[0] - moved[1]) / (2 * h)
+    return total / (3 * SH_C0)
+
+
 def test_error_mass_is_each_gaussians_blending_weight_times_the_error(problem):
     """error_mass(i) = sum over pixels of w_i(p) |e(p)| (k-view mean), the derivative of
     sum_p |e(p)| rgb(p) (the error held fixed) w.r.t. the Gaussian's colour over SH_C0: checked by
     differences of renders (the blurred image is linear in the colour)."""
-    from taichi_gs.splats import SH_C0
-
     splats, frame, _ = problem
     sourced = np.ones((HEIGHT, WIDTH), bool)
     sourced[:, :5] = False
@@ -284,26 +301,15 @@ def test_error_mass_is_each_gaussians_blending_weight_times_the_error(problem):
     mass = model.error_mass(frame, BASE, D_START, D_END, K_VIEWS)
     error = np.abs(model.render_blurred(BASE, D_START, D_END, K_VIEWS) - frame).sum(axis=2) * sourced
     assert mass.shape == (len(splats.means),) and (mass >= 0).all() and mass.max() > 0
-    h = 0.05
     for i in np.argsort(-mass)[:4].tolist() + [int(np.argmin(mass))]:
-        total = 0.0
-        for c in range(3):
-            moved = []
-            for sign in (1, -1):
-                sh = splats.sh.copy()
-                sh[i, 0, c] += sign * h
-                other = BlurScene(Splats(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, sh),
-                                  K, WIDTH, HEIGHT, precision="f64")
-                moved.append((error * other.render_blurred(BASE, D_START, D_END, K_VIEWS)[..., c]).sum())
-            total += (moved[0] - moved[1]) / (2 * h)
-        assert mass[i] == pytest.approx(total / (3 * SH_C0), rel=2e-3, abs=1e-3 * mass.max())
+        expected = _dc_derivative_over_sh_c0(
+            splats, i, lambda other, c: (error * other.render_blurred(BASE, D_START, D_END, K_VIEWS)[..., c]).sum())
+        assert mass[i] == pytest.approx(expected, rel=2e-3, abs=1e-3 * mass.max())
 
 
 def test_blending_weights_are_each_gaussians_weight_summed_over_the_sourced_pixels_of_sharp_renders(problem):
     """blending_weights(i) = sum over poses and sourced pixels of w_i(p), the derivative of the sourced pixels'
     colour sum w.r.t. the Gaussian's degree-0 colour over SH_C0: checked by differences of renders."""
-    from taichi_gs.splats import SH_C0
-
     splats = problem[0]
     sourced = np.ones((HEIGHT, WIDTH), bool)
     sourced[:, -6:] = False
@@ -311,16 +317,7 @@ def test_blending_weights_are_each_gaussians_weight_summed_over_the_sourced_pixe
     model = BlurScene(splats, K, WIDTH, HEIGHT, precision="f64", sourced=sourced)
     weights = model.blending_weights(poses)
     assert weights.shape == (len(splats.means),) and (weights >= 0).all() and weights.max() > 0
-    h = 0.05
     for i in np.argsort(-weights)[:3].tolist() + [int(np.argsort(weights)[len(weights) // 2])]:
-        total = 0.0
-        for c in range(3):
-            moved = []
-            for sign in (1, -1):
-                sh = splats.sh.copy()
-                sh[i, 0, c] += sign * h
-                other = BlurScene(Splats(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, sh),
-                                  K, WIDTH, HEIGHT, precision="f64")
-                moved.append(sum((other.render(pose)[0][..., c] * sourced).sum() for pose in poses))
-            total += (moved[0] - moved[1]) / (2 * h)
-        assert weights[i] == pytest.approx(total / (3 * SH_C0), rel=2e-3, abs=1e-3 * weights.max())
+        expected = _dc_derivative_over_sh_c0(
+            splats, i, lambda other, c: sum((other.render(pose)[0][..., c] * sourced).sum() for pose in poses))
+        assert weights[i] == pytest.approx(expected, rel=2e-3, abs=1e-3 * weights.max())
