@@ -5,6 +5,7 @@ poses live on the host (12 numbers per frame) in :mod:`stages.deblur`."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -251,15 +252,14 @@ class BlurScene:
         """[ours] Each Gaussian's blending weight summed over the (sourced) pixels of sharp renders at
         ``poses``: how much of the images it makes (LightGaussian's global significance)."""
         pixels = np.ones((self.height, self.width)) if self.sourced is None else self.sourced
-        mass = np.zeros(self.count)
-        for pose in poses:
-            mass += self._blending_mass([self.rasterizer.forward(self.gaussians, self.camera(pose))], pixels)
-        return np.maximum(mass, 0.0)
+        # rendered one at a time, each just before its backward (the renders share one view buffer)
+        renders = (self.rasterizer.forward(self.gaussians, self.camera(pose)) for pose in poses)
+        return np.maximum(self._blending_mass(renders, pixels), 0.0)
 
-    def _blending_mass(self, views: list, pixel_weights: np.ndarray) -> np.ndarray:
+    def _blending_mass(self, views: Iterable, pixel_weights: np.ndarray) -> np.ndarray:
         """Per Gaussian, the sum over ``views`` and pixels of its blending weight times ``pixel_weights``
-        (H, W). Read from a backward pass whose colour gradient is those weights, through the degree-0
-        colour's gradient (d rgb / d dc = blending weight x SH_C0)."""
+        (H, W). Read from backward passes whose colour gradient is those weights, through the degree-0
+        colour's gradient (d rgb / d dc = blending weight x SH_C0), summed on the device."""
         self.grad_view.from_numpy(np.repeat(np.asarray(pixel_weights)[..., None], 3, axis=2).astype(np.float32))
         self.gaussians.zero_grad()
         for view in views:
