@@ -12,7 +12,10 @@ blended z / alpha where alpha >= 1/2, else ``fallback`` metres), and take that s
 in the target camera. The view is the anchor's colour at the projection q of X_a, interpolated by
 Catmull-Rom (bilinear's low pass, trained through, made the scene over-sharpen; q is clamped so that
 every tap lies in the padded image). Exact for rotations at any depth up to the interpolation; for
-translations it misplaces what the anchor does not see (disocclusions).
+translations it misplaces what the anchor does not see (disocclusions). A view at the anchor's own pose
+(the middle view of an odd group of views) lands every pixel on a knot, where the interpolation is the pixel
+itself and its derivative a central difference: the host flags it (``IDENTITY``) and the kernels read one
+pixel instead of 16 taps, forward and backward.
 
 Backward (z held fixed: the fixed point's nearest-pixel lookups are piecewise constant): dL/d anchor
 colour (the interpolation weights' transpose, added into the caller's buffer) and, per view, dL/d
@@ -39,6 +42,8 @@ FIXED_POINT_STEPS = 1  # depth refinements after the first guess (none are neede
 MIN_ALPHA = 0.5  # anchor pixels with less accumulated opacity have no surface: the fallback depth is used
 MIN_Z = 1e-6
 N_POSE = 6
+IDENTITY = 12  # the column of a view's transform row that flags the anchor's own pose (R = I, t = 0)
+IDENTITY_TOLERANCE = 1e-9  # largest |entry - identity's| of a transform taken as the anchor's own pose
 TAPS = 4  # interpolation taps per axis (Catmull-Rom)
 LANE_SPREAD = 1024  # loop indices per lane: a loop this long is spread over the CPU's threads
 
@@ -145,16 +150,21 @@ def _kernels(dt) -> SimpleNamespace:
         z_anchor = surface_depth(anchor_depth, anchor_trans, ti.cast(u + margin, dt), ti.cast(v + margin, dt),
                                  fallback)
         for view in range(n_views):
-            R, t = view_transform(transforms, view)
-            rotated_ray = R @ ray
-            z = target_depth(z_anchor, rotated_ray, anchor_depth, anchor_trans, R, t, intr, margin, fallback)
-            z_out[view, v, u] = z
-            _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = sample_at(rotated_ray, z, t, intr, margin, hp, wp)
-            for b in ti.static(range(TAPS)):
-                row = vec3(0.0, 0.0, 0.0)
-                for a in ti.static(range(TAPS)):
-                    row += wx[a] * rgb_at(anchor_rgb, y0 + b, x0 + a)
-                total += wy[b] * row
+            if transforms[view, IDENTITY] > 0.5:  # the view is the anchor's own: its pixel, no interpolation
+                z_out[view, v, u] = ti.max(z_anchor, MIN_Z)
+                total += rgb_at(anchor_rgb, v + margin, u + margin)
+            else:
+                R, t = view_transform(transforms, view)
+                rotated_ray = R @ ray
+                z = target_depth(z_anchor, rotated_ray, anchor_depth, anchor_trans, R, t, intr, margin, fallback)
+                z_out[view, v, u] = z
+                _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = sample_at(rotated_ray, z, t, intr, margin,
+                                                                                 hp, wp)
+                for b in ti.static(range(TAPS)):
+                    row = vec3(0.0, 0.0, 0.0)
+                    for a in ti.static(range(TAPS)):
+                        row += wx[a] * rgb_at(anchor_rgb, y0 + b, x0 + a)
+                    total += wy[b] * row
         for c in ti.static(range(3)):
             out[v, u, c] = keep * out[v, u, c] + weight * total[c]
 
@@ -163,7 +173,7 @@ def _kernels(dt) -> SimpleNamespace:
         anchor_rgb: img3,  # (Hp, Wp, 3) the anchor's render, Hp = H + 2 margin
         anchor_depth: img2,  # (Hp, Wp) its blended z
         anchor_trans: img2,  # (Hp, Wp) its final transmittance
-        transforms: img2,  # (>= V, 12) each view's target -> anchor transform
+        transforms: img2,  # (>= V, 13) each view's target -> anchor transform and identity flag
         n_views: ti.i32,  # V
         intr: vec4,  # target fx, fy, cx, cy (rasterizer pixel centres)
         margin: ti.i32,
@@ -199,10 +209,24 @@ def _kernels(dt) -> SimpleNamespace:
                 dot = g.dot(rgb_at(anchor_rgb, y0 + b, x0 + a))
                 g_sx += dwx[a] * wy[b] * dot
                 g_sy += wx[a] * dwy[b] * dot
+        return pose_from_image_gradient(X, g_sx * inside_x, g_sy * inside_y, intr)
+
+    @ti.func
+    def pose_at_identity(u, v, z, g, anchor_rgb: ti.template(), intr, margin):
+        """:func:`pose_of` for a view that is the anchor's own (R = I, t = 0): the sample sits on pixel
+        (u + margin, v + margin), where Catmull-Rom's weights are (0, 1, 0, 0) and their derivatives
+        (-1/2, 0, 1/2, 0), a central difference."""
+        x, y = u + margin, v + margin
+        g_sx = 0.5 * (g.dot(rgb_at(anchor_rgb, y, x + 1)) - g.dot(rgb_at(anchor_rgb, y, x - 1)))
+        g_sy = 0.5 * (g.dot(rgb_at(anchor_rgb, y + 1, x)) - g.dot(rgb_at(anchor_rgb, y - 1, x)))
+        return pose_from_image_gradient(z * target_ray(u, v, intr), g_sx, g_sy, intr)
+
+    @ti.func
+    def pose_from_image_gradient(X, g_sx, g_sy, intr):
+        """dL/d epsilon of a sample at anchor point X whose loss changes by (g_sx, g_sy) per pixel of its image
+        position."""
         pose = ti.Vector.zero(dt, N_POSE)
         if X[2] > MIN_Z:
-            g_sx *= inside_x
-            g_sy *= inside_y
             inv_z = 1.0 / X[2]
             g_X = vec3(g_sx * intr[0] * inv_z, g_sy * intr[1] * inv_z,
                        -(g_sx * intr[0] * X[0] + g_sy * intr[1] * X[1]) * inv_z * inv_z)
@@ -211,6 +235,16 @@ def _kernels(dt) -> SimpleNamespace:
                 pose[c] = g_X[c]
                 pose[3 + c] = g_rot[c]
         return pose
+
+    @ti.func
+    def add_share(grad_anchor: ti.template(), y, x, hp, wp, lane, share, c, private: ti.template()):
+        """Add ``share`` to channel c of pixel (y, x) of dL/d anchor colour: into lane ``lane`` of the flat
+        private copies, or atomically into the (Hp, Wp, 3) array (see :func:`scatter`)."""
+        if ti.static(private):
+            k = ((lane * hp + y) * wp + x) * 3 + c
+            grad_anchor[k] = grad_anchor[k] + share  # not +=, which Taichi compiles to an atomic add
+        else:
+            ti.atomic_add(grad_anchor[y, x, c], share)
 
     @ti.func
     def scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor: ti.template(), lane, private: ti.template()):
@@ -231,27 +265,37 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.func
     def pixel_pose(u, v, grad_out: ti.template(), anchor_rgb: ti.template(), z_in: ti.template(), view, R, t,
-                   intr, margin, weight):
+                   intr, margin, weight, identity):
         """Target pixel (u, v)'s dL/d epsilon in one view (reads only; the CPU backward's first pass)."""
-        X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
-                                                                       anchor_rgb.shape[0], anchor_rgb.shape[1])
-        return pose_of(X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y, weight * rgb_at(grad_out, v, u), anchor_rgb,
-                       intr)
+        g = weight * rgb_at(grad_out, v, u)
+        pose = ti.Vector.zero(dt, N_POSE)
+        if identity:
+            pose = pose_at_identity(u, v, z_in[view, v, u], g, anchor_rgb, intr, margin)
+        else:
+            X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
+                                                                           anchor_rgb.shape[0], anchor_rgb.shape[1])
+            pose = pose_of(X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y, g, anchor_rgb, intr)
+        return pose
 
     @ti.func
     def pixel_scatter(u, v, grad_out: ti.template(), z_in: ti.template(), view, R, t, intr, margin, weight,
-                      hp, wp, grad_anchor: ti.template(), lane, private: ti.template()):
+                      hp, wp, grad_anchor: ti.template(), lane, private: ti.template(), identity):
         """Target pixel (u, v)'s share of dL/d anchor colour in one view (the CPU backward's second pass)."""
-        _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
-                                                                            hp, wp)
-        scatter(x0, y0, wx, wy, weight * rgb_at(grad_out, v, u), hp, wp, grad_anchor, lane, private)
+        g = weight * rgb_at(grad_out, v, u)
+        if identity:  # one tap, weight 1
+            for c in ti.static(range(3)):
+                add_share(grad_anchor, v + margin, u + margin, hp, wp, lane, g[c], c, private)
+        else:
+            _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = pixel_sample(u, v, z_in, view, R, t, intr,
+                                                                                margin, hp, wp)
+            scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor, lane, private)
 
     @ti.kernel
     def backward_atomic(
         grad_out: img3,  # (H, W, 3) dL/d out
         anchor_rgb: img3,  # (Hp, Wp, 3)
         z_in: img3,  # (>= V, H, W) from forward
-        transforms: img2,  # (>= V, 12)
+        transforms: img2,  # (>= V, 13)
         n_views: ti.i32,  # V
         intr: vec4,
         margin: ti.i32,
@@ -262,14 +306,21 @@ def _kernels(dt) -> SimpleNamespace:
     ):
         for v, u in ti.ndrange(grad_out.shape[0], grad_out.shape[1]):  # GPU: a thread per pixel
             for view in range(n_views):
-                R, t = view_transform(transforms, view)
-                hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
-                X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(u, v, z_in, view, R, t, intr, margin,
-                                                                               hp, wp)
                 g = weight * rgb_at(grad_out, v, u)
-                pose = pose_of(X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y, g, anchor_rgb, intr)
-                if with_anchor:
-                    scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor, 0, False)
+                pose = ti.Vector.zero(dt, N_POSE)
+                if transforms[view, IDENTITY] > 0.5:
+                    pose = pose_at_identity(u, v, z_in[view, v, u], g, anchor_rgb, intr, margin)
+                    if with_anchor:
+                        for c in ti.static(range(3)):
+                            add_share(grad_anchor, v + margin, u + margin, 0, 0, 0, g[c], c, False)
+                else:
+                    R, t = view_transform(transforms, view)
+                    hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
+                    X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(u, v, z_in, view, R, t, intr,
+                                                                                   margin, hp, wp)
+                    pose = pose_of(X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y, g, anchor_rgb, intr)
+                    if with_anchor:
+                        scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor, 0, False)
                 for c in ti.static(range(N_POSE)):
                     ti.atomic_add(rows[v * n_views + view, c], pose[c])
 
@@ -296,13 +347,15 @@ def _kernels(dt) -> SimpleNamespace:
                 for v in range(lane * h // lanes, (lane + 1) * h // lanes):
                     for view in range(n_views):
                         R, t = view_transform(transforms, view)
+                        identity = transforms[view, IDENTITY] > 0.5
                         acc = ti.Vector.zero(dt, N_POSE)  # the row's reads, then its writes (module docstring)
                         for u in range(grad_out.shape[1]):
-                            acc += pixel_pose(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight)
+                            acc += pixel_pose(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight,
+                                              identity)
                         if with_anchor:
                             for u in range(grad_out.shape[1]):
                                 pixel_scatter(u, v, grad_out, z_in, view, R, t, intr, margin, weight,
-                                              anchor_rgb.shape[0], anchor_rgb.shape[1], private, lane, True)
+                                              anchor_rgb.shape[0], anchor_rgb.shape[1], private, lane, True, identity)
                         for c in ti.static(range(N_POSE)):
                             rows[v * n_views + view, c] = acc[c]
         for i in range(grad_anchor.shape[0] * spread * with_anchor):
@@ -324,12 +377,18 @@ _scratch = scan.Scratch()
 _lane_buffers: dict[str, ti.Ndarray] = {}  # the CPU backward's private gradients, zeroed when made
 
 
-def _args(transforms: np.ndarray, K: np.ndarray, dtype) -> tuple:
-    """(V, 12) device rows [R row-major, t] of the views' 4x4 target -> anchor transforms, and the
-    intrinsics vector."""
+def _args(transforms: np.ndarray, K: np.ndarray, margin: int, dtype) -> tuple:
+    """(V, 13) device rows [R row-major, t, identity flag] of the views' 4x4 target -> anchor transforms, and
+    the intrinsics vector. A view within ``IDENTITY_TOLERANCE`` of the identity is the anchor's own pose (the
+    middle view of an odd group, ``deblur_model.anchor_groups``): it is flagged, and the kernels read its pixels
+    instead of interpolating them (with a margin, so that the central differences of its pose gradient stay in
+    the image)."""
     M = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
-    rows = np.concatenate([M[:, :3, :3].reshape(-1, 9), M[:, :3, 3]], axis=1)
-    device = _scratch.get(f"warp transforms {dtype}", len(rows), dtype, (12,))
+    identity = np.abs(M[:, :3, :] - np.eye(4)[:3]).max(axis=(1, 2)) <= IDENTITY_TOLERANCE
+    identity &= margin >= 1
+    M[identity] = np.eye(4)
+    rows = np.concatenate([M[:, :3, :3].reshape(-1, 9), M[:, :3, 3], identity[:, None]], axis=1)
+    device = _scratch.get(f"warp transforms {dtype}", len(rows), dtype, (IDENTITY + 1,))
     padded = np.zeros(device.shape, rows.dtype)
     padded[: len(rows)] = rows
     device.from_numpy(padded.astype(np.float64 if dtype == ti.f64 else np.float32))
@@ -357,7 +416,7 @@ def accumulate(anchor_rgb: ti.Ndarray, anchor_depth: ti.Ndarray, anchor_trans: t
     margin). ``z_out`` (>= V, H, W) receives each pixel's depth for :func:`backward`."""
     views = len(np.asarray(targets_to_anchor).reshape(-1, 4, 4))
     _check(anchor_rgb, out, margin, z_out, views)
-    transforms, intr = _args(targets_to_anchor, K, out.dtype)
+    transforms, intr = _args(targets_to_anchor, K, margin, out.dtype)
     _kernels(out.dtype).forward(anchor_rgb, anchor_depth, anchor_trans, transforms, views, intr, margin,
                                 fallback_depth, weight, 0.0 if first else 1.0, out, z_out)
 
@@ -372,7 +431,7 @@ def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, target
     _check(anchor_rgb, grad_out, margin, z, views)
     dtype, height = grad_out.dtype, grad_out.shape[0]
     rows = _scratch.get(f"warp rows {dtype}", height * views, dtype, (N_POSE,))
-    transforms, intr = _args(targets_to_anchor, K, dtype)
+    transforms, intr = _args(targets_to_anchor, K, margin, dtype)
     kernels = _kernels(dtype)
     backend = runtime.current()
     with_anchor = int(grad_anchor is not None)
