@@ -138,7 +138,8 @@ def kernel_outputs() -> dict[str, np.ndarray]:
     alpha = np.where(rng.uniform(size=anchor.shape[:2]) < 0.9, 0.95, 0.1)  # a few pixels without a surface
     anchor_depth = (2.0 + 0.2 * np.sin(np.arange(anchor.shape[1]) / 6.0))[None, :] * alpha
     M = se3_exp(np.array([0.03, -0.02, 0.01, 0.02, -0.03, 0.01]))
-    views = np.stack([M, se3_exp(np.array([-0.02, 0.01, 0.0, 0.01, 0.02, -0.01])) @ M, np.eye(4)])  # and the anchor's own
+    views = np.stack([M, se3_exp(np.array([-0.02, 0.01, 0.0, 0.01, 0.02, -0.01])) @ M,
+                      np.eye(4)])  # the last at the anchor's own pose
     warped, z, grad_anchor = dev(np.zeros(pred.shape)), dev(np.zeros((3, 37, 45))), dev(np.zeros(anchor.shape))
     warp.accumulate(dev(anchor), dev(anchor_depth), dev(1.0 - alpha), views, K, margin, 2.0, 0.5, warped, z,
                     first=True)

@@ -192,8 +192,10 @@ def test_the_anchors_own_view_follows_the_interpolated_path(anchor):
     rgb, depth, trans, _ = anchor
     near = se3_exp(np.full(6, 1e-8))
     views = np.stack([np.eye(4), near])
-    flags = warp._args(views, K_RASTER, MARGIN, ti.f64)[0].to_numpy()[:2, warp.IDENTITY]
+    hair = np.eye(4) + 1e-12
+    flags = warp._args(np.stack([hair, near]), K_RASTER, MARGIN, ti.f64)[0].to_numpy()[:2, warp.IDENTITY]
     np.testing.assert_array_equal(flags, [1.0, 0.0])
+    np.testing.assert_array_equal(hair, np.eye(4) + 1e-12)  # snapped to the identity on the device only
     results = []
     for M in views:
         a, out, z = run_warp(rgb, depth, trans, M)

@@ -383,7 +383,7 @@ def _args(transforms: np.ndarray, K: np.ndarray, margin: int, dtype) -> tuple:
     middle view of an odd group, ``deblur_model.anchor_groups``): it is flagged, and the kernels read its pixels
     instead of interpolating them (with a margin, so that the central differences of its pose gradient stay in
     the image)."""
-    M = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
+    M = np.array(transforms, dtype=np.float64).reshape(-1, 4, 4)  # a copy: the caller's stay as given
     identity = np.abs(M[:, :3, :] - np.eye(4)[:3]).max(axis=(1, 2)) <= IDENTITY_TOLERANCE
     identity &= margin >= 1
     M[identity] = np.eye(4)
