@@ -34,7 +34,8 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def warp_views(width: int) -> np.ndarray:
     """(WARP_VIEWS, 4, 4) target -> anchor transforms of a blur trail: up to 1.5 cm and 0.75 degrees
-    (about 4-6 px at 2 m for the focal length of ``width``), rotation and translation mixed."""
+    (about 4-6 px at 2 m for the focal length of ``width``), rotation and translation mixed. One of them is
+    the anchor's own pose, which the warp reads instead of interpolating (since 2026-11-29, seventh session)."""
     from taichi_gs.geometry import se3_exp
 
     steps = np.arange(WARP_VIEWS) - WARP_VIEWS // 2
