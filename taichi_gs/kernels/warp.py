@@ -237,14 +237,11 @@ def _kernels(dt) -> SimpleNamespace:
         return pose
 
     @ti.func
-    def add_share(grad_anchor: ti.template(), y, x, hp, wp, lane, share, c, private: ti.template()):
-        """Add ``share`` to channel c of pixel (y, x) of dL/d anchor colour: into lane ``lane`` of the flat
-        private copies, or atomically into the (Hp, Wp, 3) array (see :func:`scatter`)."""
-        if ti.static(private):
-            k = ((lane * hp + y) * wp + x) * 3 + c
-            grad_anchor[k] = grad_anchor[k] + share  # not +=, which Taichi compiles to an atomic add
-        else:
-            ti.atomic_add(grad_anchor[y, x, c], share)
+    def add_to_lane(copies: ti.template(), lane, y, x, hp, wp, g):
+        """Add colour gradient g to pixel (y, x) of lane ``lane`` of the flat private copies (see :func:`scatter`)."""
+        base = ((lane * hp + y) * wp + x) * 3
+        for c in ti.static(range(3)):
+            copies[base + c] = copies[base + c] + g[c]  # not +=, which Taichi compiles to an atomic add
 
     @ti.func
     def scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor: ti.template(), lane, private: ti.template()):
@@ -280,11 +277,11 @@ def _kernels(dt) -> SimpleNamespace:
     @ti.func
     def pixel_scatter(u, v, grad_out: ti.template(), z_in: ti.template(), view, R, t, intr, margin, weight,
                       hp, wp, grad_anchor: ti.template(), lane, private: ti.template(), identity):
-        """Target pixel (u, v)'s share of dL/d anchor colour in one view (the CPU backward's second pass)."""
+        """Target pixel (u, v)'s share of dL/d anchor colour in one view (the CPU backward's second pass, into
+        lane ``lane`` of the private copies)."""
         g = weight * rgb_at(grad_out, v, u)
         if identity:  # one tap, weight 1
-            for c in ti.static(range(3)):
-                add_share(grad_anchor, v + margin, u + margin, hp, wp, lane, g[c], c, private)
+            add_to_lane(grad_anchor, lane, v + margin, u + margin, hp, wp, g)
         else:
             _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = pixel_sample(u, v, z_in, view, R, t, intr,
                                                                                 margin, hp, wp)
@@ -312,7 +309,7 @@ def _kernels(dt) -> SimpleNamespace:
                     pose = pose_at_identity(u, v, z_in[view, v, u], g, anchor_rgb, intr, margin)
                     if with_anchor:
                         for c in ti.static(range(3)):
-                            add_share(grad_anchor, v + margin, u + margin, 0, 0, 0, g[c], c, False)
+                            ti.atomic_add(grad_anchor[v + margin, u + margin, c], g[c])
                 else:
                     R, t = view_transform(transforms, view)
                     hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
