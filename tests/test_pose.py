@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import threading
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -30,6 +31,7 @@ class SceneSequence:
         self.gt_poses = poses
         self.timestamps = np.arange(len(poses)) / 30.0
         self.names = [f"frame{i:03d}" for i in range(len(poses))]
+        self.depth_paths = [Path("depth") / f"{name}.png" for name in self.names]
         self.frames = [render(p, K, W, H) for p in poses]
         self.broken_depth = broken_depth
 
@@ -341,6 +343,21 @@ def test_frame_without_depth_becomes_weak_constant_velocity_pairs(tmp_path):
     relatives = [invert(result.poses[k + 1]) @ result.poses[k] for k in range(4)]
     np.testing.assert_allclose(relatives[2], relatives[1], atol=1e-9)  # previous motion repeated
     assert result.summary().startswith("4 pairs, 2 weak (2 replaced")  # pairs 1->2 and 2->3
+    warnings = pose_stage.weak_pair_warnings(sequence, result.pairs, METHOD_ONLY)
+    assert len(warnings) == 1  # the frame is named once, not its two weak pairs
+    assert warnings[0].startswith(f"{Path('depth') / 'frame002.png'}: 0 pixels of usable depth")
+
+
+def test_weak_pairs_with_depth_are_named_up_to_a_count(tmp_path):
+    sequence = SceneSequence(walk(3))
+    pairs = [{"index": 0, "source": "a", "target": "b", "weak": True, "estimate": "flow", "reason": "overlap 0.10"}
+             for _ in range(pose_stage.MAX_PAIR_WARNINGS + 2)]
+    pairs.append({"index": 1, "source": "b", "target": "c", "weak": False, "estimate": "icp", "reason": ""})
+    warnings = pose_stage.weak_pair_warnings(sequence, pairs, PoseConfig())
+    assert warnings[0] == "weak pair a -> b (overlap 0.10); its edge (the flow estimate) is weighted down in the pose graph"
+    assert len(warnings) == pose_stage.MAX_PAIR_WARNINGS + 1 and warnings[-1].startswith("2 more weak pairs")
+    assert pose_stage.weak_pair_warnings(sequence, pairs[:1], METHOD_ONLY)[0].endswith("the trajectory keeps the flow estimate")
+    assert pose_stage.weak_pair_warnings(sequence, pairs[-1:], PoseConfig()) == []
 
 
 def test_exception_in_one_pair_is_recorded_and_the_run_continues(tmp_path, walk_sequence, monkeypatch):

@@ -167,6 +167,8 @@ def test_frames_without_depth_still_finish_with_weak_pairs_reported(tiny, tmp_pa
     result = taichi_gs("reconstruct", str(seq), "--out", str(out), "--config", str(tiny["config"]))
     assert result.returncode == 0, result.stderr
     assert "2 weak" in result.stderr
+    assert f"{depth_path}: 0 pixels of usable depth" in result.stderr  # the file is named, once
+    assert result.stderr.count("pixels of usable depth") == 1
     pairs = json.loads((out / "pose" / "pairs.json").read_text())["pairs"]
     assert [p["index"] for p in pairs if p["weak"]] == [2, 3]
 

@@ -48,6 +48,8 @@ from .pose_solver import SolverSettings, solve, typical_residuals
 if TYPE_CHECKING:
     import open3d as o3d
 
+    from ..io.sequence import Sequence
+
 # What a degenerate pair may raise; anything else is a bug or bad input and ends the run.
 NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError)
 
@@ -1115,13 +1117,41 @@ def progress_steps(frames: int, config: PoseConfig) -> int:
     return (frames - 1) * (2 if config.pose_graph else 1) + frames
 
 
+MAX_PAIR_WARNINGS = 5  # weak pairs named one by one on the console; pairs.json lists them all
+
+
+def weak_pair_warnings(sequence: Sequence, pairs: list[dict], config: PoseConfig) -> list[str]:
+    """One line per frame of a weak pair whose depth has fewer usable pixels than a pair needs (naming its depth
+    file), then one per other weak pair (at most :data:`MAX_PAIR_WARNINGS`, and a count of the rest)."""
+    weak = [p for p in pairs if p.get("weak")]
+    frames = sorted({p["index"] for p in weak} | {p["index"] + 1 for p in weak})
+    depthless = {}
+    for i in frames:
+        usable = int(np.count_nonzero(config.reliable_depth(sequence.depth(i))))
+        if usable < config.min_points:
+            depthless[i] = usable
+    lines = [f"{sequence.depth_paths[i]}: {usable} pixels of usable depth ({config.min_depth_m:g}-"
+             f"{config.max_depth_m:g} m), fewer than a pair needs ({config.min_points}); frame {sequence.names[i]}'s "
+             f"pose comes from its neighbours; check the depth file" for i, usable in depthless.items()]
+    others = [p for p in weak if p["index"] not in depthless and p["index"] + 1 not in depthless]
+    for p in others[:MAX_PAIR_WARNINGS]:
+        held = ("the constant-velocity guess" if p["estimate"] == FROM_CONSTANT_VELOCITY
+                else f"the {p['estimate']} estimate")
+        fate = (f"its edge ({held}) is weighted down in the pose graph" if config.pose_graph
+                else f"the trajectory keeps {held}")
+        lines.append(f"weak pair {p['source']} -> {p['target']} ({p['reason'] or 'no reason recorded'}); {fate}")
+    if len(others) > MAX_PAIR_WARNINGS:
+        lines.append(f"{len(others) - MAX_PAIR_WARNINGS} more weak pairs: see pose/pairs.json")
+    return lines
+
+
 def _run_stage(context: StageContext) -> StageRun:
     pairs = len(context.sequence) - 1
     with context.progress(STAGE.title, progress_steps(len(context.sequence), context.config)) as update:
         result = run_pose(context.sequence, context.out, context.config,
                           progress=lambda done, total, kind: update(done, total, step=kind))
     weak = sum(1 for p in result.pairs if p.get("weak"))
-    return StageRun(f"{pairs} pairs, {weak} weak")
+    return StageRun(f"{pairs} pairs, {weak} weak", weak_pair_warnings(context.sequence, result.pairs, context.config))
 
 
 def _stage_inputs(out: Path, config: PoseConfig, poses: Path | None, points: Path | None) -> StageInputs:
