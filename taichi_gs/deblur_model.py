@@ -81,6 +81,15 @@ def anchor_groups(k: int, anchors: int) -> list[np.ndarray]:
     return np.split(np.arange(k), np.cumsum(sizes)[:-1])
 
 
+def warped_views(k: int, anchors: int) -> int:
+    """[ours] How many of k virtual views are interpolated from an anchor render: all but the middle view of
+    each odd-sized group (:func:`anchor_groups`), which sits at its anchor's own pose and is read, not
+    interpolated (``kernels.warp``); with no anchors, all k (each is rendered)."""
+    if anchors < 1:
+        return k
+    return sum(len(group) - len(group) % 2 for group in anchor_groups(k, anchors))
+
+
 ANCHOR_VIEWS = 1000  # rasterizer view buffers of the padded anchor renders (apart from the k full renders')
 FROZEN_VIEWS = 2000  # those of :class:`FrozenAnchors` (kept across steps, so apart from the others)
 

@@ -120,7 +120,7 @@ def test_training_colour_downsampling_is_the_block_mean():
     np.testing.assert_allclose(small, expected, atol=1e-6)
 
 
-@pytest.mark.parametrize("preset, exposure_px, warns", [("fast", 9.0, False), ("fast", 15.0, True), ("paper", 9.0, False)])
+@pytest.mark.parametrize("preset, exposure_px, warns", [("fast", 9.0, False), ("fast", 18.0, True), ("paper", 9.0, False)])
 def test_the_k_warning_follows_the_presets_step_target(preset, exposure_px, warns):
     from taichi_gs.stages.deblur import PRESETS, _Frames, _step_warnings
 
@@ -130,8 +130,8 @@ def test_the_k_warning_follows_the_presets_step_target(preset, exposure_px, warn
     frames = _Frames([], [], np.array([depth, depth]), np.array([[focal, 0, 0], [0, focal, 0], [0, 0, 1.0]]))
     warnings = _step_warnings(offsets, [0, 1], frames, PRESETS[preset])
     assert bool(warnings) == warns
-    if warns:  # 15 px over k = 8: 2.14 px steps; --k 9 gives 15 / 8 = 1.9 px, under fast's 2 px
-        assert "2.14 px (frame 1)" in warnings[0] and "--k 9 " in warnings[0]
+    if warns:  # 18 px over k = 9: 2.25 px steps; --k 10 gives 18 / 9 = 2 px, fast's step
+        assert "2.25 px (frame 1)" in warnings[0] and "--k 10 " in warnings[0]
 
 
 def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):

@@ -3,6 +3,8 @@ and stage 3's move of a scene between resolutions."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -43,6 +45,42 @@ def test_early_views_widen_the_step_only_before_their_share_of_training():
     assert deblur._views(d, 500.0, 2.0, off, 0.0) == 4
     presets = deblur.PRESETS
     assert presets["fast"].early_views_fraction == 0.3 and presets["paper"].early_views_fraction == 0.0
+
+
+def test_warped_views_leave_out_each_odd_groups_middle_view():
+    from taichi_gs.deblur_model import warped_views
+
+    assert [warped_views(k, 1) for k in range(3, 10)] == [2, 4, 4, 6, 6, 8, 8]
+    assert [warped_views(k, 3) for k in (4, 5, 8, 9)] == [2, 4, 6, 6]  # groups 1-2-1, 2-1-2, 3-2-3, 3-3-3
+    assert warped_views(6, 0) == 6  # no anchors: every view is rendered
+
+
+@pytest.mark.parametrize("span_px, warp_px, expected", [
+    (5.0, 12.0, (5, 1)),  # 4 views at 2 px steps; a fifth at the anchor's pose costs no interpolation
+    (9.0, 12.0, (7, 1)),  # 6 -> 7
+    (12.0, 12.0, (7, 1)),  # already odd
+    (15.0, 12.0, (9, 1)),  # 9 at the cap
+    (5.0, 2.0, (4, 3)),  # three anchors: groups 1-2-1 interpolate 2 views, 2-1-2 would interpolate 4
+])
+def test_odd_views_raise_an_even_count_only_where_no_view_more_is_interpolated(span_px, warp_px, expected):
+    from taichi_gs.stages.deblur import _exposure_sampling, _Frames
+
+    focal, depth = 200.0, 2.0
+    d = np.zeros((2, 6))
+    d[1, 0] = span_px * depth / focal  # sideways translation giving span_px on the image
+    frames = _Frames([], [], np.array([depth]), np.array([[focal, 0, 0], [0, focal, 0], [0, 0, 1.0]]))
+    config = deblur.DeblurConfig(k=9, max_step_px=2.0, adaptive_k=True, k_min=3, warp_views=True, warp_px=warp_px,
+                                 odd_views=True)
+    assert _exposure_sampling(d, frames, 0, config) == expected
+    plain = dataclasses.replace(config, odd_views=False)
+    even = _exposure_sampling(d, frames, 0, plain)
+    assert even[0] == min(int(np.ceil(span_px / 2.0)) + 1, 9)
+    rendered = dataclasses.replace(config, warp_views=False)  # every view rendered: nothing comes free
+    assert _exposure_sampling(d, frames, 0, rendered) == (even[0], 0)
+    capped = dataclasses.replace(config, k=6)
+    assert _exposure_sampling(d, frames, 0, capped)[0] <= 6
+    presets = deblur.PRESETS
+    assert presets["fast"].odd_views and presets["fast"].k == 9 and not presets["paper"].odd_views
 
 
 def test_window_convergence_needs_two_windows_and_a_small_relative_change():
