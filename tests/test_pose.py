@@ -348,7 +348,7 @@ def test_frame_without_depth_becomes_weak_constant_velocity_pairs(tmp_path):
     assert warnings[0].startswith(f"{Path('depth') / 'frame002.png'}: 0 pixels of usable depth")
 
 
-def test_weak_pairs_with_depth_are_named_up_to_a_count(tmp_path):
+def test_weak_pairs_with_depth_are_named_up_to_a_count():
     sequence = SceneSequence(walk(3))
     pairs = [{"index": 0, "source": "a", "target": "b", "weak": True, "estimate": "flow", "reason": "overlap 0.10"}
              for _ in range(pose_stage.MAX_PAIR_WARNINGS + 2)]

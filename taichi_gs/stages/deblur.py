@@ -543,7 +543,7 @@ def _exposure_sampling(d: np.ndarray, frames: _Frames, frame: int, config: Deblu
     focal, depth = frames.K[0, 0], frames.median_depth[frame]
     k = _views(d, focal, depth, config, fraction)
     anchors = _anchors(d, focal, depth, config, k)
-    if config.odd_views and config.adaptive_k and k % 2 == 0 and k < config.k:
+    if config.odd_views and k % 2 == 0 and k < config.k:  # below k: adaptive; rendered views never qualify
         more = _anchors(d, focal, depth, config, k + 1)
         if warped_views(k + 1, more) <= warped_views(k, anchors):
             return k + 1, more
