@@ -120,6 +120,15 @@ def test_training_colour_downsampling_is_the_block_mean():
     np.testing.assert_allclose(small, expected, atol=1e-6)
 
 
+def test_a_frame_without_depth_takes_the_other_frames_median_depth():
+    from taichi_gs.stages.deblur import median_depths
+
+    frames = [np.full((4, 5), 2.0), np.zeros((4, 5)), np.full((4, 5), 3.0)]
+    frames[0][0, 0] = 0.0  # invalid pixels do not count
+    np.testing.assert_allclose(median_depths(frames), [2.0, 2.5, 3.0])
+    np.testing.assert_allclose(median_depths([np.zeros((2, 2))] * 2), [1.0, 1.0])  # no depth anywhere: 1 m
+
+
 @pytest.mark.parametrize("preset, exposure_px, warns", [("fast", 9.0, False), ("fast", 18.0, True), ("paper", 9.0, False)])
 def test_the_k_warning_follows_the_presets_step_target(preset, exposure_px, warns):
     from taichi_gs.stages.deblur import PRESETS, _Frames, _step_warnings

@@ -384,8 +384,15 @@ def _load_frames(sequence: Sequence, scale: int, sourced: np.ndarray | None) -> 
     depths = [downsample_depth(sequence.depth(i), scale)[:h, :w] for i in range(len(sequence))]
     if sourced is not None:
         sourced = _downsample_color(sourced.astype(np.float32), scale) >= SOURCED
-    return _Frames(colors, depths, np.array([median_depth(d) for d in depths]), _area_intrinsics(sequence.K(), scale),
-                   sourced)
+    return _Frames(colors, depths, median_depths(depths), _area_intrinsics(sequence.K(), scale), sourced)
+
+
+def median_depths(depths: list[np.ndarray]) -> np.ndarray:
+    """Each frame's median valid depth (:func:`median_depth`); a frame without valid depth (a dropped sensor
+    frame) takes the median of the others', so that its exposure's length in pixels stays at the scene's depth."""
+    medians = np.array([median_depth(d) if np.any(d > 0) else np.nan for d in depths])
+    known = medians[np.isfinite(medians)]
+    return np.where(np.isfinite(medians), medians, float(np.median(known)) if known.size else median_depth(depths[0]))
 
 
 def loss_mask(sequence: Sequence, config: DeblurConfig) -> np.ndarray | None:
