@@ -333,10 +333,19 @@ def _as_arrays(splats: Splats) -> dict[str, np.ndarray]:
             "opacity_logits": splats.opacity_logits, "colors": splats.sh}
 
 
-def median_depth(depth: np.ndarray) -> float:
-    """Median valid (> 0) depth of a frame, 1 m without any."""
+def median_depth(depth: np.ndarray, default: float = 1.0) -> float:
+    """Median valid (> 0) depth of a frame, ``default`` (1 m) without any."""
     valid = depth[depth > 0]
-    return float(np.median(valid)) if valid.size else 1.0
+    return float(np.median(valid)) if valid.size else default
+
+
+def median_depths(depths: list[np.ndarray]) -> np.ndarray:
+    """Each frame's :func:`median_depth`; a frame without valid depth (a dropped sensor frame) takes the median of
+    the others' (1 m when none has any), so that its exposure's length in pixels stays at the scene's depth."""
+    medians = np.array([median_depth(d, default=np.nan) for d in depths])
+    missing = np.isnan(medians)
+    medians[missing] = median_depth(medians[~missing])
+    return medians
 
 
 class _RenderedExposure:

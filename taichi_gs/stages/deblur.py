@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..deblur_model import BlurScene, FrozenAnchors, Rates, anchor_count, median_depth, warped_views
+from ..deblur_model import BlurScene, FrozenAnchors, Rates, anchor_count, median_depths, warped_views
 from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
 from ..geometry import invert, se3_log, virtual_pose
@@ -385,14 +385,6 @@ def _load_frames(sequence: Sequence, scale: int, sourced: np.ndarray | None) -> 
     if sourced is not None:
         sourced = _downsample_color(sourced.astype(np.float32), scale) >= SOURCED
     return _Frames(colors, depths, median_depths(depths), _area_intrinsics(sequence.K(), scale), sourced)
-
-
-def median_depths(depths: list[np.ndarray]) -> np.ndarray:
-    """Each frame's median valid depth (:func:`median_depth`); a frame without valid depth (a dropped sensor
-    frame) takes the median of the others', so that its exposure's length in pixels stays at the scene's depth."""
-    medians = np.array([median_depth(d) if np.any(d > 0) else np.nan for d in depths])
-    known = medians[np.isfinite(medians)]
-    return np.where(np.isfinite(medians), medians, float(np.median(known)) if known.size else median_depth(depths[0]))
 
 
 def loss_mask(sequence: Sequence, config: DeblurConfig) -> np.ndarray | None:
