@@ -75,7 +75,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "loop_max_angle_deg": _within(0, 180), "threads": OPTIONAL_COUNT,
     },
     "refine": {
-        "voxel_size": NON_NEGATIVE, "initial_opacity": _within(0.01, 0.99), "iterations_per_frame": COUNT,
+        "voxel_size": NON_NEGATIVE, "initial_opacity": _within(0.01, 0.99), "iterations_per_frame": OPTIONAL_COUNT,
         "prune_every_per_frame": COUNT, "reset_every_per_frame": COUNT, "prune_opacity": FRACTION,
         "lambda_depth": NON_NEGATIVE, "lambda_coverage": NON_NEGATIVE, "lambda_opacity": NON_NEGATIVE,
         "min_alpha": _within(0.01, 1), "views_per_step": COUNT, "pose_rotation_per_m": NON_NEGATIVE,

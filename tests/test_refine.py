@@ -64,6 +64,27 @@ def test_refinement_undoes_a_known_perturbation(scene, tmp_path):
     assert not (stage / "checkpoint.npz").exists()
 
 
+def test_no_iterations_hands_stage_1s_poses_and_cloud_over_untrained(scene, tmp_path):
+    """``iterations_per_frame = 0`` ([ours], the fast preset): stage 2 writes its files without training, so
+    stage 3 starts from stage 1's poses and one Gaussian per fused point at the initial scale and opacity."""
+    sequence, _, start, points, colors = scene
+    config = dataclasses.replace(CONFIG, iterations_per_frame=0)
+    result = run_refine(sequence, start, points, colors, tmp_path, config)
+    assert (result.iterations, result.loss_history, result.gaussians) == (0, [], len(points))
+    np.testing.assert_array_equal(result.poses, start)
+    stage = tmp_path / "refine"
+    _, poses = read_tum(stage / "trajectory.txt")
+    np.testing.assert_allclose(poses, start, atol=1e-6)
+    splats = read_splats(stage / "splats.ply")
+    np.testing.assert_allclose(splats.means, points, atol=1e-6)
+    np.testing.assert_allclose(splats.log_scales, np.log(config.voxel_size / 2), rtol=1e-5)
+    np.testing.assert_allclose(splats.opacities, config.initial_opacity, atol=1e-6)
+    cloud, cloud_colors = read_point_cloud(stage / "points.ply")
+    np.testing.assert_allclose(cloud, points, atol=1e-6)
+    np.testing.assert_allclose(cloud_colors, colors, atol=1 / 255)
+    assert not (stage / "acceptance.json").exists()  # nothing refined, nothing to accept
+
+
 def test_resume_from_a_checkpoint_matches_an_uninterrupted_run(scene, tmp_path):
     sequence, _, start, points, colors = scene
     config = dataclasses.replace(CONFIG, iterations_per_frame=4, prune_every_per_frame=2, reset_every_per_frame=3,

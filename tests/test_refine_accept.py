@@ -24,7 +24,8 @@ from taichi_gs.stages.refine_accept import accept_refined_poses
 synth = pytest.importorskip("taichi_gs.synth")
 
 VOXEL = 0.02
-CONFIG = dataclasses.replace(PRESETS["fast"], voxel_size=VOXEL)
+# the fast preset's schedule as it trains (the preset itself hands stage 1's output over untrained)
+CONFIG = dataclasses.replace(PRESETS["fast"], voxel_size=VOXEL, iterations_per_frame=60)
 
 
 @pytest.fixture(scope="module")
