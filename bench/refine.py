@@ -32,7 +32,7 @@ from taichi_gs.geometry import invert
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.kernels import runtime
 from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
-from taichi_gs.stages.refine import PRESETS, RefineConfig, run_refine
+from taichi_gs.stages.refine import FAST_TRAINING_PER_FRAME, PRESETS, RefineConfig, run_refine
 from taichi_gs.standins import perturbed
 from taichi_gs.synth import SynthConfig, generate
 
@@ -67,7 +67,7 @@ def refine_row(label: str, sequence, gt: np.ndarray, start: np.ndarray, config: 
 def suite(args, root: Path) -> None:
     size = tuple(int(x) for x in args.size.split("x"))
     # the fast preset's schedule as it trains (the preset itself hands stage 1's output to stage 3 untrained)
-    fixed = dataclasses.replace(PRESETS["fast"], voxel_size=VOXEL, iterations_per_frame=60)
+    fixed = dataclasses.replace(PRESETS["fast"], voxel_size=VOXEL, iterations_per_frame=FAST_TRAINING_PER_FRAME)
     free = dataclasses.replace(fixed, free_scale=True)
     print(f"\n{size[0]}x{size[1]}, {args.frames} frames, extreme blur, `fast` preset trained for {fixed.iterations_per_frame} N iterations\n")
     print("| sequence / start / scale | ATE (mm) | RPE trans (mm) | RPE rot (deg) | depth L1 (mm) | Gaussians | s/iter | wall (s) |")

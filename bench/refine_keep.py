@@ -23,7 +23,7 @@ from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
-from taichi_gs.stages.refine import PRESETS, run_refine
+from taichi_gs.stages.refine import FAST_TRAINING_PER_FRAME, PRESETS, run_refine
 from taichi_gs.stages.refine_accept import accept_refined_poses
 
 STEPS = {"1 cm steps (method)": (1e-2, 1e-5), "0.1 mm steps (default)": (1e-4, 1e-6)}
@@ -45,7 +45,7 @@ def sequence_rows(folder: Path, frames: int, out: Path, from_gt: bool = True) ->
     print(f"| {name} | stage 1 | {cells(stage1, gt)} | - |", flush=True)
     # the fast preset's schedule as it trains (the preset itself hands stage 1's output over untrained)
     base = dataclasses.replace(PRESETS["fast"], voxel_size=pose_config.voxel_size_m, accept_neighbours=0,
-                               iterations_per_frame=60)
+                               iterations_per_frame=FAST_TRAINING_PER_FRAME)
     for start_name, start in (("stage 1", stage1), ("ground truth", gt))[:2 if from_gt else 1]:
         points, colors = fuse_points(sequence, start, pose_config)
         for label, (lr, lr_final) in STEPS.items():

@@ -18,14 +18,14 @@ from taichi_gs.standins import perturbed
 from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert
 from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
-from taichi_gs.stages.refine import PRESETS, run_refine
+from taichi_gs.stages.refine import FAST_TRAINING_PER_FRAME, PRESETS, run_refine
 from taichi_gs.stages.refine_accept import accept_refined_poses
 
 synth = pytest.importorskip("taichi_gs.synth")
 
 VOXEL = 0.02
 # the fast preset's schedule as it trains (the preset itself hands stage 1's output over untrained)
-CONFIG = dataclasses.replace(PRESETS["fast"], voxel_size=VOXEL, iterations_per_frame=60)
+CONFIG = dataclasses.replace(PRESETS["fast"], voxel_size=VOXEL, iterations_per_frame=FAST_TRAINING_PER_FRAME)
 
 
 @pytest.fixture(scope="module")
