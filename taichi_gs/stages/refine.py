@@ -198,13 +198,13 @@ def run_refine(
     stage_dir.mkdir(parents=True, exist_ok=True)
     n_frames = len(sequence)
     total = config.iterations_per_frame * n_frames
-    prune_every = config.prune_every_per_frame * n_frames
-    reset_every = config.reset_every_per_frame * n_frames
-
     splats = splats_from_points(points, colors, scale=config.voxel_size / 2, opacity=config.initial_opacity)
     if total == 0:  # [ours] hand over: stage 1's poses and fused cloud go to stage 3 untrained
         _write_outputs(stage_dir, sequence, initial_poses, splats, colors, [])
-        return RefineResult(initial_poses.copy(), [], len(splats.means), 0.0, 0)
+        return RefineResult(initial_poses.copy(), [], len(splats), 0.0, 0)
+
+    prune_every = config.prune_every_per_frame * n_frames
+    reset_every = config.reset_every_per_frame * n_frames
     K, depths = _training_depths(sequence, config)
     height, width = depths[0].shape
     extent = float(np.linalg.norm(initial_poses[:, :3, 3] - initial_poses[:, :3, 3].mean(axis=0), axis=1).max())
