@@ -209,6 +209,15 @@ def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+def fit_scale_translation(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray]:
+    """Scale s and translation t minimising sum |s source_i + t - target_i|^2 (no rotation) over points (N, 3);
+    ``with_scale=False``: the translation alone (s = 1)."""
+    source, target = np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    centred = source - source.mean(axis=0)
+    scale = float((centred * (target - target.mean(axis=0))).sum() / (centred ** 2).sum()) if with_scale else 1.0
+    return scale, target.mean(axis=0) - scale * source.mean(axis=0)
+
+
 def raster_intrinsics(K: np.ndarray) -> np.ndarray:
     """Intrinsics for the rasterizer, whose pixel centres sit at +0.5 (gsplat's convention).
 

@@ -38,6 +38,7 @@ from ..splats import Splats
 from . import checkpoint
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .divergence import DivergenceGuard
+from .gauge import FrameShift, back_to_stage_2s_frame
 from .row_adam import RowAdam
 from .rprop import Rprop
 from .schedule import downsample_depth, exp_decay, scaled_intrinsics, training_scale, views_for_span
@@ -159,6 +160,16 @@ class DeblurConfig:
     # reads instead of interpolating, so the exposure is sampled more finely at the same cost
     # (BENCHMARKS, "Odd view counts")
     odd_views: bool = False
+    # [ours] after training (and the held-out fits), move the scene and every exposure by the scale and
+    # translation that map the training frames' mid-exposure centres back onto stage 2's (stages/gauge.py):
+    # colour leaves that gauge free and the depth term lets it drift. The scale moves only where the fit
+    # determines it to keep_frame_scale_error (standard error), else the translation alone. Colour renders are
+    # unchanged; OUT/deblur/frame.json records the move.
+    keep_frame: bool = False
+    keep_frame_scale_error: float = 0.001
+    # [ours] each exposure learns its span only: after every update (training and held-out fits) its offsets are
+    # re-centred, (d_s + d_e) / 2 = 0, so every mid-exposure pose stays stage 2's
+    pin_mid_exposure: bool = False
 
 
 PRESETS = {
@@ -218,7 +229,9 @@ PRESETS = {
                          # Gaussians (above the 100k cap: they never densified or filled) gained +0.18 to +0.32 dB
                          # held-out at 1.03-1.09x the stage-3 time; scenes handed over under 77k are unchanged
                          # (BENCHMARKS, "Room to densify")
-                         densify_headroom=1.3),
+                         densify_headroom=1.3,
+                         # [ours] the output in stage 2's frame (BENCHMARKS, "Stage 3 back in stage 2's frame")
+                         keep_frame=True),
 }
 
 
@@ -349,6 +362,11 @@ def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, 
     return np.stack([middle - scale * half, middle + scale * half])
 
 
+def _pinned(d: np.ndarray, config: DeblurConfig) -> np.ndarray:
+    """Exposure offsets (start, end) re-centred on the stage-2 pose with ``pin_mid_exposure``, else as they are."""
+    return d - d.mean(axis=0) if config.pin_mid_exposure else d
+
+
 def _downsample_color(color: np.ndarray, scale: int) -> np.ndarray:
     """Area average over scale x scale blocks (pixel i covers inputs scale*i .. scale*i + scale - 1)."""
     if scale == 1:
@@ -472,7 +490,8 @@ def run_deblur(
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
             updated = exposure_adam.step(frame, offsets[frame], np.stack([step.grad_start, step.grad_end]), lr_exposure)
-            offsets[frame] = keep_open(updated, start[frame], config.min_open_px, full.K[0, 0], full.median_depth[frame])
+            offsets[frame] = keep_open(_pinned(updated, config), start[frame], config.min_open_px, full.K[0, 0],
+                                       full.median_depth[frame])
             if config.colour_affine:
                 colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
         loss = (1 - config.lambda_dssim) * step.losses["l1"] + config.lambda_dssim * step.losses["dssim"] \
@@ -514,14 +533,18 @@ def run_deblur(
         offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
                                                                frame, config)
     warnings = _step_warnings(offsets, train, frames, config)
+    splats, shift = model.splats(), None
+    if config.keep_frame:
+        splats, poses, offsets, shift = back_to_stage_2s_frame(splats, poses, offsets, train,
+                                                                config.keep_frame_scale_error)
     result = DeblurResult(
         mid_poses=np.stack([virtual_pose(poses[i], *offsets[i], 0.5) for i in range(len(sequence))]),
         exposure=np.stack([[virtual_pose(poses[i], *offsets[i], tau) for tau in (0.0, 1.0)] for i in range(len(sequence))]),
         train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
         warnings=warnings,
     )
-    _write_outputs(stage_dir, sequence, model.splats(), poses, offsets, result, config, sharpness,
-                   colours if config.colour_affine else None)
+    _write_outputs(stage_dir, sequence, splats, poses, offsets, result, config, sharpness,
+                   colours if config.colour_affine else None, shift)
     checkpoint_path.unlink(missing_ok=True)
     return result
 
@@ -681,7 +704,7 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
                           anchors=anchors, fallback_depth=frames.median_depth[frame], frozen=frozen)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
-        d = exposure_step(d, np.stack([step.grad_start, step.grad_end]))
+        d = _pinned(exposure_step(d, np.stack([step.grad_start, step.grad_end])), config)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
         if config.colour_affine:
             colour = colour_step(colour, step.grad_colour)
@@ -716,8 +739,12 @@ def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, confi
 
 def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
                    result: DeblurResult, config: DeblurConfig, sharpness: list[float],
-                   colours: np.ndarray | None) -> None:
+                   colours: np.ndarray | None, shift: FrameShift | None) -> None:
     write_splats(stage_dir / "splats.ply", splats)
+    if shift is not None:
+        write_text(stage_dir / "frame.json", jsonout.dumps(shift.as_dict(), indent=2) + "\n")
+    else:
+        (stage_dir / "frame.json").unlink(missing_ok=True)
     write_tum(stage_dir / "trajectory.txt", sequence.timestamps, result.mid_poses,
               header="taichi-gs stage 3 (deblur), mid-exposure camera-to-world")
     write_text(stage_dir / "exposure.txt", _format_exposure(sequence.timestamps, result.exposure))
