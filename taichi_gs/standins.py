@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -14,6 +15,9 @@ from .io.ply import write_splats
 from .io.sequence import Sequence
 from .io.trajectory import write_tum
 from .splats import splats_from_points
+
+if TYPE_CHECKING:
+    from .synth import SynthConfig
 
 
 def fused_points(sequence: Sequence, poses: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -38,6 +42,18 @@ def write_refine_outputs(sequence: Sequence, out: Path, voxel: float = 0.03, opa
     write_splats(out / "refine" / "splats.ply", splats_from_points(points, np.clip(colors, 0, 1), voxel / 2, opacity))
     write_tum(out / "refine" / "trajectory.txt", sequence.timestamps, poses, header="ground-truth stand-in for stage 2")
     (out / "run.json").write_text(json.dumps({"sequence": str(Path(sequence.root).resolve())}))
+
+
+def synthetic_refine_outputs(folder: Path, config: "SynthConfig", voxel: float) -> tuple[Sequence, Path]:
+    """A synthetic clip generated into FOLDER/seq and stage 2's stand-in outputs for it in FOLDER/out
+    (:func:`write_refine_outputs`): (the sequence, the run folder)."""
+    from .io.sequence import load_sequence
+    from .synth import generate
+
+    generate(config, Path(folder) / "seq")
+    sequence = load_sequence(Path(folder) / "seq")
+    write_refine_outputs(sequence, Path(folder) / "out", voxel=voxel)
+    return sequence, Path(folder) / "out"
 
 
 def perturbed(gt: np.ndarray, seed: int = 1) -> np.ndarray:

@@ -68,14 +68,10 @@ def _read_rgb(path) -> np.ndarray:
 
 
 def test_extreme_blur_held_out_views_get_sharper_and_exposures_approach_truth(tmp_path):
-    from taichi_gs.standins import write_refine_outputs
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.standins import synthetic_refine_outputs
 
-    synth.generate(synth.SynthConfig(width=96, height=72, frames=9, trajectory="handheld", blur="extreme", seed=1),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    out = tmp_path / "out"
-    write_refine_outputs(sequence, out, voxel=0.05)
+    clip = synth.SynthConfig(width=96, height=72, frames=9, trajectory="handheld", blur="extreme", seed=1)
+    sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.05)
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=5, iterations=200, resolution_scale=1,
                                  densify_from=100, densify_until=150, exposure_from=60, test_pose_iterations=10,
                                  checkpoint_every=100)

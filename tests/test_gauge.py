@@ -93,14 +93,10 @@ def _short_stage_3(tmp_path, **overrides):
     """A 12-iteration stage 3 on a stand-in stage 2 of a 4-frame clip whose exposures train at a large rate (so that
     they drift from stage 2's cameras); returns (result, stage 2's centres, stage 3's mid-exposure poses)."""
     synth = pytest.importorskip("taichi_gs.synth")
-    from taichi_gs.io.sequence import load_sequence
-    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.standins import synthetic_refine_outputs
 
-    synth.generate(synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    out = tmp_path / "out"
-    write_refine_outputs(sequence, out, voxel=0.08)
+    clip = synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3)
+    sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.08)
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=12, densify_from=1000,
                                  exposure_from=0, lr_exposure=0.02, lr_exposure_final=0.02, test_pose_iterations=0,
                                  holdout_every=0, checkpoint_every=100, fill_uncovered=False)

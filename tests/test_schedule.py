@@ -146,17 +146,13 @@ def test_coarse_to_fine_with_k_per_exposure_deblurs_held_out_views_at_full_size(
     import dataclasses
 
     import cv2
-    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.standins import synthetic_refine_outputs
 
     from taichi_gs.evaluate import psnr
-    from taichi_gs.io.sequence import load_sequence
 
     synth = pytest.importorskip("taichi_gs.synth")
-    synth.generate(synth.SynthConfig(width=96, height=72, frames=9, trajectory="handheld", blur="extreme", seed=1),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    out = tmp_path / "out"
-    write_refine_outputs(sequence, out, voxel=0.05)
+    clip = synth.SynthConfig(width=96, height=72, frames=9, trajectory="handheld", blur="extreme", seed=1)
+    sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.05)
     # early_views_fraction off: the fewer views asserted below must come from the coarse phase alone
     config = dataclasses.replace(deblur.PRESETS["fast"], iterations_per_view=0, k=7, iterations=200, densify_from=100,
                                  densify_until=150, exposure_from=60, test_pose_iterations=10, checkpoint_every=100,
