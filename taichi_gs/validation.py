@@ -103,7 +103,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "densify_by": _one_of("gradient", "error", "both"), "error_densify_share": FRACTION,
         "prune_weight_share": FRACTION,
         "error_densify_frames": COUNT, "warp_px": _within(0.5, 64), "test_fit_refresh_px": NON_NEGATIVE,
-        "keep_frame_scale_error": NON_NEGATIVE,
+        "keep_frame_scale_error": NON_NEGATIVE, "mid_exposure_decay": FRACTION,
     },
 }
 

@@ -14,7 +14,7 @@ from taichi_gs.geometry import fit_scale_translation, se3_exp, virtual_pose
 from taichi_gs.io.ply import read_splats
 from taichi_gs.io.trajectory import read_tum
 from taichi_gs.splats import Splats
-from taichi_gs.stages.deblur import PRESETS, run_deblur
+from taichi_gs.stages.deblur import PRESETS, run_deblur, shrink_mid
 from taichi_gs.stages.gauge import back_to_stage_2s_frame
 
 WIDTH, HEIGHT = 40, 32
@@ -125,12 +125,19 @@ def test_stage_3_ends_in_stage_2s_frame(tmp_path, keep_frame):
         assert gap > 1e-4 and not record.exists()
 
 
+def test_the_mid_offset_shrinks_by_its_share_and_the_span_stays():
+    d = np.array([[0.01, -0.02, 0.004, 0.002, 0.0, -0.001], [0.03, 0.01, -0.002, 0.004, 0.002, 0.003]])
+    shrunk = shrink_mid(d, 0.25)
+    assert np.allclose(shrunk.mean(axis=0), 0.75 * d.mean(axis=0)) and np.allclose(shrunk[1] - shrunk[0], d[1] - d[0])
+    assert shrink_mid(d, 0.0) is d and np.allclose(shrink_mid(d, 1.0).mean(axis=0), 0.0)
+
+
 @pytest.mark.parametrize("pin", [True, False])
 def test_pinned_exposures_keep_every_mid_exposure_pose_at_stage_2s(tmp_path, pin):
-    """``pin_mid_exposure``: training frames and held-out fits alike end at stage 2's cameras (the exposures still
-    learn their spans); unpinned, the same run moves them by more than 0.1 mm."""
-    result, stage_2, stage_3 = _short_stage_3(tmp_path, pin_mid_exposure=pin, keep_frame=False, holdout_every=2,
-                                              test_pose_iterations=3)
+    """``mid_exposure_decay = 1``: training frames and held-out fits alike end at stage 2's cameras (the exposures
+    still learn their spans); at 0, the same run moves them by more than 0.1 mm."""
+    result, stage_2, stage_3 = _short_stage_3(tmp_path, mid_exposure_decay=1.0 if pin else 0.0, keep_frame=False,
+                                              holdout_every=2, test_pose_iterations=3)
     assert result.test
     moved = np.abs(stage_3 - stage_2).max(axis=(1, 2))
     exposure = np.loadtxt(tmp_path / "out" / "deblur" / "exposure.txt")
@@ -145,4 +152,4 @@ def test_pinned_exposures_keep_every_mid_exposure_pose_at_stage_2s(tmp_path, pin
 def test_the_fast_preset_keeps_stage_2s_frame_and_paper_does_not():
     fast, paper = PRESETS["fast"], PRESETS["paper"]
     assert fast.keep_frame and not paper.keep_frame
-    assert not fast.pin_mid_exposure and not paper.pin_mid_exposure
+    assert fast.mid_exposure_decay == 0.0 and paper.mid_exposure_decay == 0.0

@@ -167,9 +167,10 @@ class DeblurConfig:
     # unchanged; OUT/deblur/frame.json records the move.
     keep_frame: bool = False
     keep_frame_scale_error: float = 0.001
-    # [ours] each exposure learns its span only: after every update (training and held-out fits) its offsets are
-    # re-centred, (d_s + d_e) / 2 = 0, so every mid-exposure pose stays stage 2's
-    pin_mid_exposure: bool = False
+    # [ours] after every update of an exposure (training and held-out fits), its mid-exposure offset (d_s + d_e) / 2
+    # shrinks by this share towards stage 2's pose, its span unchanged: 0 leaves it free (the method), 1 pins every
+    # mid-exposure pose at stage 2's (the exposures learn their spans only)
+    mid_exposure_decay: float = 0.0
 
 
 PRESETS = {
@@ -362,9 +363,9 @@ def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, 
     return np.stack([middle - scale * half, middle + scale * half])
 
 
-def _pinned(d: np.ndarray, config: DeblurConfig) -> np.ndarray:
-    """Exposure offsets (start, end) re-centred on the stage-2 pose with ``pin_mid_exposure``, else as they are."""
-    return d - d.mean(axis=0) if config.pin_mid_exposure else d
+def shrink_mid(d: np.ndarray, decay: float) -> np.ndarray:
+    """Exposure offsets (start, end) whose mid offset (their mean) shrank by the share ``decay``, span unchanged."""
+    return d - decay * d.mean(axis=0) if decay > 0 else d
 
 
 def _downsample_color(color: np.ndarray, scale: int) -> np.ndarray:
@@ -490,7 +491,7 @@ def run_deblur(
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
             updated = exposure_adam.step(frame, offsets[frame], np.stack([step.grad_start, step.grad_end]), lr_exposure)
-            offsets[frame] = keep_open(_pinned(updated, config), start[frame], config.min_open_px, full.K[0, 0],
+            offsets[frame] = keep_open(shrink_mid(updated, config.mid_exposure_decay), start[frame], config.min_open_px, full.K[0, 0],
                                        full.median_depth[frame])
             if config.colour_affine:
                 colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
@@ -704,7 +705,7 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
                           anchors=anchors, fallback_depth=frames.median_depth[frame], frozen=frozen)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
-        d = _pinned(exposure_step(d, np.stack([step.grad_start, step.grad_end])), config)
+        d = shrink_mid(exposure_step(d, np.stack([step.grad_start, step.grad_end])), config.mid_exposure_decay)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
         if config.colour_affine:
             colour = colour_step(colour, step.grad_colour)
