@@ -211,10 +211,11 @@ def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def fit_scale_translation(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> tuple[float, np.ndarray]:
     """Scale s and translation t minimising sum |s source_i + t - target_i|^2 (no rotation) over points (N, 3);
-    ``with_scale=False``: the translation alone (s = 1)."""
+    ``with_scale=False``, or source points that do not spread (one point): the translation alone (s = 1)."""
     source, target = np.asarray(source, dtype=np.float64), np.asarray(target, dtype=np.float64)
     centred = source - source.mean(axis=0)
-    scale = float((centred * (target - target.mean(axis=0))).sum() / (centred ** 2).sum()) if with_scale else 1.0
+    spread = (centred ** 2).sum()
+    scale = float((centred * (target - target.mean(axis=0))).sum() / spread) if with_scale and spread > 0 else 1.0
     return scale, target.mean(axis=0) - scale * source.mean(axis=0)
 
 

@@ -491,8 +491,8 @@ def run_deblur(
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
             updated = exposure_adam.step(frame, offsets[frame], np.stack([step.grad_start, step.grad_end]), lr_exposure)
-            offsets[frame] = keep_open(shrink_mid(updated, config.mid_exposure_decay), start[frame], config.min_open_px, full.K[0, 0],
-                                       full.median_depth[frame])
+            updated = shrink_mid(updated, config.mid_exposure_decay)
+            offsets[frame] = keep_open(updated, start[frame], config.min_open_px, full.K[0, 0], full.median_depth[frame])
             if config.colour_affine:
                 colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
         loss = (1 - config.lambda_dssim) * step.losses["l1"] + config.lambda_dssim * step.losses["dssim"] \

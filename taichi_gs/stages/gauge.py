@@ -5,9 +5,8 @@ image unchanged), and stage 3's depth term, at a tenth of the colour loss's weig
 loosely: on the bundled sample stage 3 moved every camera 5-8 mm from stage 2's and shrank the trajectory by
 0.3%, which doubled its ATE. :func:`back_to_stage_2s_frame` undoes that drift after training: the
 similarity (scale and translation, no rotation, so view-dependent colour needs no rotating) that maps the
-training frames' mid-exposure centres onto stage 2's is applied to the Gaussians and to every exposure; the scale
-only where the fit determines it.
-Colour renders stay the same; rendered depth scales with the scene.
+training frames' mid-exposure centres onto stage 2's is applied to the Gaussians and to every exposure, the scale
+only where the fit determines it. Colour renders stay the same; rendered depth scales with the scene.
 """
 
 from __future__ import annotations
