@@ -81,6 +81,7 @@ def grid(kinds: list[str], seven_scenes: Path | None, tum: Path | None, runs: li
         name, _, folder = item.partition("=")
         if not folder or not (Path(folder) / "pose").is_dir():
             raise SystemExit(f"--run {item}: expected NAME=DIR with a stage-1 run folder (DIR/pose)")
+        folder = str(Path(folder).resolve())
         sequences.append(Sequence(name, not _has_sharp_ground_truth(Path(folder)), stage1=folder))
     return sequences
 
@@ -211,13 +212,15 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1, help="cells run at once (seconds comparable only at 1)")
     args = parser.parse_args()
     arms = _arms(args.arm)
-    sequences = grid(args.grid, args.seven_scenes, args.tum, args.run)
-    args.out.mkdir(parents=True, exist_ok=True)
+    seven_scenes, tum = (path.resolve() if path else None for path in (args.seven_scenes, args.tum))
+    sequences = grid(args.grid, seven_scenes, tum, args.run)
+    out = args.out.resolve()  # the CLI runs inside each cell's folder
+    out.mkdir(parents=True, exist_ok=True)
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        bases = dict(zip(sequences, pool.map(lambda s: stage1(s, args.out), sequences)))
+        bases = dict(zip(sequences, pool.map(lambda s: stage1(s, out), sequences)))
         cells = [(s, arm, config) for s in sequences for arm, config in arms.items()]
-        results = list(pool.map(lambda c: run_cell(c[0], bases[c[0]], c[1], c[2], args.out), cells))
-    (args.out / "grid.json").write_text(json.dumps(results, indent=1))
+        results = list(pool.map(lambda c: run_cell(c[0], bases[c[0]], c[1], c[2], out), cells))
+    (out / "grid.json").write_text(json.dumps(results, indent=1))
     print(table(results))
 
 
