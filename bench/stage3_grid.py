@@ -44,7 +44,7 @@ DEFAULT_ARM = "default"
 
 
 @dataclass(frozen=True)
-class Sequence:
+class GridSequence:
     """A grid sequence: how its stage-1 folder is made (``synth`` options or ``pose`` options on ``source``)."""
 
     name: str
@@ -55,34 +55,38 @@ class Sequence:
     stage1: str = ""  # an existing stage-1 run folder (--run)
 
 
-def grid(kinds: list[str], seven_scenes: Path | None, tum: Path | None, runs: list[str]) -> list[Sequence]:
+def grid(kinds: list[str], seven_scenes: Path | None, tum: Path | None, runs: list[str]) -> list[GridSequence]:
     """The sequences of the chosen grid parts, in table order."""
     sequences = []
     if "synth" in kinds:
-        sequences += [Sequence("room hand-held s5", False, synth_args=("--seed", "5")),
-                      Sequence("office turn s11", False, synth_args=("--seed", "11", "--scene", "office",
-                                                                      "--trajectory", "turn")),
-                      Sequence("corridor translation s3", False, synth_args=("--seed", "3", "--scene", "corridor",
-                                                                              "--trajectory", "translation"))]
+        sequences += [
+            GridSequence("room hand-held s5", False, synth_args=("--seed", "5")),
+            GridSequence("office turn s11", False,
+                         synth_args=("--seed", "11", "--scene", "office", "--trajectory", "turn")),
+            GridSequence("corridor translation s3", False,
+                         synth_args=("--seed", "3", "--scene", "corridor", "--trajectory", "translation")),
+        ]
     if "sample" in kinds:
-        sequences.append(Sequence("sample", False, source=str(ROOT / "samples" / "room")))
+        sequences.append(GridSequence("sample", False, source=str(ROOT / "samples" / "room")))
     if "7scenes" in kinds:
         if seven_scenes is None:
             raise SystemExit("--grid 7scenes needs --7scenes FOLDER (the 7-Scenes slice)")
-        sequences += [Sequence("7-Scenes 0-39", True, str(seven_scenes), pose_args=("--count", "40", "--scale", "0.5")),
-                      Sequence("7-Scenes every 3rd", True, str(seven_scenes),
-                               pose_args=("--every", "3", "--count", "40", "--scale", "0.5"))]
+        sequences += [
+            GridSequence("7-Scenes 0-39", True, str(seven_scenes), pose_args=("--count", "40", "--scale", "0.5")),
+            GridSequence("7-Scenes every 3rd", True, str(seven_scenes),
+                         pose_args=("--every", "3", "--count", "40", "--scale", "0.5")),
+        ]
     if "tum" in kinds:
         if tum is None:
             raise SystemExit("--grid tum needs --tum FOLDER (a TUM RGB-D folder, e.g. fr1_rpy)")
-        sequences.append(Sequence("TUM 400-439", True, str(tum), pose_args=("--camera", "fr1", "--first", "400",
-                                                                             "--count", "40", "--scale", "0.5")))
+        tum_args = ("--camera", "fr1", "--first", "400", "--count", "40", "--scale", "0.5")
+        sequences.append(GridSequence("TUM 400-439", True, str(tum), pose_args=tum_args))
     for item in runs:
         name, _, folder = item.partition("=")
         if not folder or not (Path(folder) / "pose").is_dir():
             raise SystemExit(f"--run {item}: expected NAME=DIR with a stage-1 run folder (DIR/pose)")
         folder = str(Path(folder).resolve())
-        sequences.append(Sequence(name, not _has_sharp_ground_truth(Path(folder)), stage1=folder))
+        sequences.append(GridSequence(name, not _has_sharp_ground_truth(Path(folder)), stage1=folder))
     return sequences
 
 
@@ -106,7 +110,7 @@ def taichi_gs(*args: str, log: Path) -> tuple[float, float]:
     return time.perf_counter() - start, usage.ru_utime + usage.ru_stime
 
 
-def stage1(seq: Sequence, out: Path) -> Path:
+def stage1(seq: GridSequence, out: Path) -> Path:
     """The sequence's stage-1 folder, made once."""
     if seq.stage1:
         return Path(seq.stage1)
@@ -123,7 +127,7 @@ def stage1(seq: Sequence, out: Path) -> Path:
     return base
 
 
-def run_cell(seq: Sequence, base: Path, arm: str, config: Path | None, out: Path) -> dict:
+def run_cell(seq: GridSequence, base: Path, arm: str, config: Path | None, out: Path) -> dict:
     """Stages 2 and 3 and eval of one arm on a copy of the sequence's stage-1 folder; its figures."""
     cell = out / "runs" / _slug(seq.name) / arm
     result_path = cell.parent / f"{arm}.json"
@@ -172,7 +176,8 @@ def table(results: list[dict]) -> str:
     defaults = {r["sequence"]: r for r in results if r["arm"] == DEFAULT_ARM}
     for r in results:
         base = defaults.get(r["sequence"])
-        delta = "" if base is None or r is base else f"{r['held_out_psnr_db'] - base['held_out_psnr_db']:+.2f}"
+        pair = None if base is None or r is base else (r["held_out_psnr_db"], base["held_out_psnr_db"])
+        delta = f"{pair[0] - pair[1]:+.2f}" if pair and None not in pair else ""
         lines.append(f"| {r['sequence']} | {r['arm']} | {_num(r['held_out_psnr_db'])} / "
                      f"{_num(r['held_out_ssim'], 3)} | {_num(r['reblur_test_db'])} / {_num(r['reblur_train_db'])} | "
                      f"{_num(r['render_on_floor_pixels_db'])} / {_num(r['floor_db'])} | {_num(r['ate_pose_mm'])} / "

@@ -6,18 +6,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .geometry import backproject, se3_exp, transform
 from .io.ply import write_splats
-from .io.sequence import Sequence
+from .io.sequence import Sequence, load_sequence
 from .io.trajectory import write_tum
 from .splats import splats_from_points
-
-if TYPE_CHECKING:
-    from .synth import SynthConfig
+from .synth import SynthConfig, generate
 
 
 def fused_points(sequence: Sequence, poses: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -44,12 +41,9 @@ def write_refine_outputs(sequence: Sequence, out: Path, voxel: float = 0.03, opa
     (out / "run.json").write_text(json.dumps({"sequence": str(Path(sequence.root).resolve())}))
 
 
-def synthetic_refine_outputs(folder: Path, config: "SynthConfig", voxel: float) -> tuple[Sequence, Path]:
+def synthetic_refine_outputs(folder: Path, config: SynthConfig, voxel: float) -> tuple[Sequence, Path]:
     """A synthetic clip generated into FOLDER/seq and stage 2's stand-in outputs for it in FOLDER/out
     (:func:`write_refine_outputs`): (the sequence, the run folder)."""
-    from .io.sequence import load_sequence
-    from .synth import generate
-
     generate(config, Path(folder) / "seq")
     sequence = load_sequence(Path(folder) / "seq")
     write_refine_outputs(sequence, Path(folder) / "out", voxel=voxel)

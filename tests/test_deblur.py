@@ -143,15 +143,11 @@ def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
     """With the scales frozen, every Gaussian stage 3 writes is at most ``init_max_px`` wide (sigma,
     seen from the nearest training camera; the split halves sample positions, so a little slack),
     and there are more of them than stage 2 gave."""
-    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.standins import synthetic_refine_outputs
     from taichi_gs.density import footprint_limit
-    from taichi_gs.io.sequence import load_sequence
 
-    synth.generate(synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    out = tmp_path / "out"
-    write_refine_outputs(sequence, out, voxel=0.08)
+    clip = synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3)
+    sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.08)
     before = read_splats(out / "refine" / "splats.ply")
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=2, iterations=4, densify_from=1000,
                                  exposure_from=1000, test_pose_iterations=0, lr_scales=0.0, lr_means=1e-12,
@@ -170,14 +166,10 @@ def _one_densification(tmp_path, densify_by: str = "error", cap_share: float | N
     """(Gaussians stage 2 handed over, Gaussians after) of a two-step stage 3 on a stand-in stage 2 whose one
     densification, after the first step, grows by 10% of the Gaussians when ``densify_by`` is "error";
     ``cap_share``: ``max_gaussians`` is that share of the handed-over count (None: the preset's cap)."""
-    from taichi_gs.standins import write_refine_outputs
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.standins import synthetic_refine_outputs
 
-    synth.generate(synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    out = tmp_path / "out"
-    write_refine_outputs(sequence, out, voxel=0.08)
+    clip = synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3)
+    sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.08)
     before = len(read_splats(out / "refine" / "splats.ply"))
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=2, iterations=2, densify_from=1,
                                  densify_until=1, densify_every=1, prune_opacity=0.0, prune_scale=1e9,
@@ -244,21 +236,18 @@ def test_densification_statistics_are_gathered_only_while_a_densification_can_re
     """Training steps 1 .. densify_until add to the statistics, later ones do not (nothing reads them
     after the window); the held-out fits, which freeze the scene, never do."""
     from taichi_gs.density import DensityControl, DensitySchedule
-    from taichi_gs.io.sequence import load_sequence
-    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.standins import synthetic_refine_outputs
 
     schedule = DensitySchedule(10, 30, 10, 1.0, 0.01, 0.005, 0.1, 100)
     assert schedule.observes(30) and not schedule.observes(31)
-    synth.generate(synth.SynthConfig(width=48, height=36, frames=4, trajectory="handheld", blur="extreme", seed=2),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    write_refine_outputs(sequence, tmp_path / "run", voxel=0.06)
+    clip = synth.SynthConfig(width=48, height=36, frames=4, trajectory="handheld", blur="extreme", seed=2)
+    sequence, run = synthetic_refine_outputs(tmp_path, clip, voxel=0.06)
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=24, densify_from=5,
                                  densify_until=15, densify_every=5, test_pose_iterations=2)
     calls: list[int] = []
     observe = DensityControl.observe
     monkeypatch.setattr(DensityControl, "observe", lambda self, *a: (calls.append(len(calls)), observe(self, *a)))
-    run_deblur(sequence, tmp_path / "run", config)
+    run_deblur(sequence, run, config)
     assert len(calls) == 15
 
 
@@ -268,13 +257,10 @@ def test_significance_pruning_drops_the_lightest_share_once_after_the_last_densi
     nothing grows afterwards, so the run ends with what the drop kept."""
     from taichi_gs.deblur_model import BlurScene
     from taichi_gs.density import DensityControl, heavier_than_share
-    from taichi_gs.io.sequence import load_sequence
-    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.standins import synthetic_refine_outputs
 
-    synth.generate(synth.SynthConfig(width=48, height=36, frames=4, trajectory="handheld", blur="extreme", seed=2),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    write_refine_outputs(sequence, tmp_path / "run", voxel=0.06)
+    clip = synth.SynthConfig(width=48, height=36, frames=4, trajectory="handheld", blur="extreme", seed=2)
+    sequence, run = synthetic_refine_outputs(tmp_path, clip, voxel=0.06)
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=24, densify_from=5,
                                  densify_until=17, densify_every=5, densify_grad=1e9, fill_uncovered=False,
                                  test_pose_iterations=0, prune_weight_share=0.2)
@@ -291,7 +277,7 @@ def test_significance_pruning_drops_the_lightest_share_once_after_the_last_densi
         return dropped
 
     monkeypatch.setattr(DensityControl, "drop_lightest", recorded_drop)
-    result = run_deblur(sequence, tmp_path / "run", config)
+    result = run_deblur(sequence, run, config)
     assert [d[0] for d in drops] == [15]
     _, count, dropped = drops[0]
     assert result.gaussians == count - dropped

@@ -155,20 +155,17 @@ def test_neighbours_mid_shift_is_the_mean_correction_of_the_nearest_training_fra
 def test_held_out_frames_start_where_their_training_neighbours_moved(tmp_path, from_neighbours):
     """[ours] ``test_fit_from_neighbours``: with no fit steps, a held-out frame's mid-exposure pose is its
     stage-2 pose moved by its training neighbours' mean learned correction (off: the stage-2 pose itself)."""
-    from taichi_gs.io.sequence import load_sequence
-    from taichi_gs.standins import write_refine_outputs
+    from taichi_gs.standins import synthetic_refine_outputs
 
     synth = pytest.importorskip("taichi_gs.synth")
-    synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    write_refine_outputs(sequence, tmp_path / "run", voxel=0.06)
+    clip = synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2)
+    sequence, run = synthetic_refine_outputs(tmp_path, clip, voxel=0.06)
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=30, densify_from=10,
                                  densify_until=20, densify_every=10, exposure_from=0, test_pose_iterations=0,
                                  test_fit_from_neighbours=from_neighbours,
                                  keep_frame=False)  # the poses as trained, not moved into stage 2's frame afterwards
-    result = run_deblur(sequence, tmp_path / "run", config)
-    base, _ = load_stage2(tmp_path / "run", sequence.timestamps)
+    result = run_deblur(sequence, run, config)
+    base, _ = load_stage2(run, sequence.timestamps)
     learned = np.stack([[se3_log(invert(base[j]) @ result.mid_poses[j])] * 2 for j in range(len(sequence))])
     assert result.test == [1, 4]
     for frame in result.test:
