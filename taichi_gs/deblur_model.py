@@ -16,7 +16,7 @@ from .geometry import (
     exposure_pose_gradients, invert, raster_intrinsics, relative_pose_gradients, so3_log, virtual_pose,
 )
 from .noreference import eroded
-from .render import Camera, Rasterizer, affine, blur, losses, to_device, warp
+from .render import Camera, Rasterizer, affine, blur, host_copy, losses, to_device, warp
 from .splats import SH_C0, Splats, logit, rgb_to_sh_dc
 
 TRAINED = FIELDS  # every parameter of a full 3D Gaussian learns in stage 3
@@ -210,7 +210,7 @@ class BlurScene:
         if frozen is not None and (rates is not None or anchors < 1 or lambda_depth > 0):
             raise ValueError("frozen anchors need a frozen scene (rates None), anchors and no depth term")
         taus = exposure_taus(k)
-        self.frame.from_numpy(np.ascontiguousarray(frame, np.float32))
+        host_copy.write(self.frame, frame)
         if anchors > 0:
             fallback = median_depth(depth) if fallback_depth is None else fallback_depth
             exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen)
@@ -252,7 +252,7 @@ class BlurScene:
         if colour is not None:
             affine.forward(self.blurred, colour, self.compensated)
             predicted = self.compensated
-        error = np.abs(predicted.to_numpy() - frame).sum(axis=2)
+        error = np.abs(host_copy.read(predicted) - frame).sum(axis=2)
         if self.sourced is not None:
             error = error * self.sourced
         return np.maximum(self._blending_mass(views, error / k), 0.0)
@@ -269,11 +269,11 @@ class BlurScene:
         """Per Gaussian, the sum over ``views`` and pixels of its blending weight times ``pixel_weights``
         (H, W). Read from backward passes whose colour gradient is those weights, through the degree-0
         colour's gradient (d rgb / d dc = blending weight x SH_C0), summed on the device."""
-        self.grad_view.from_numpy(np.repeat(np.asarray(pixel_weights)[..., None], 3, axis=2).astype(np.float32))
+        host_copy.write(self.grad_view, np.repeat(np.asarray(pixel_weights)[..., None], 3, axis=2))
         self.gaussians.zero_grad()
         for view in views:
             self.rasterizer.backward(self.gaussians, view, d_rgb=self.grad_view)
-        mass = self.gaussians.grads["colors"].to_numpy()[: self.count, 0].sum(axis=1) / (3 * SH_C0)
+        mass = host_copy.read(self.gaussians.grads["colors"], self.count)[:, 0].sum(axis=1) / (3 * SH_C0)
         self.gaussians.zero_grad()
         return mass
 
@@ -303,7 +303,7 @@ class BlurScene:
     def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int) -> np.ndarray:
         """The k-view average (H, W, 3) over an exposure, as NumPy."""
         _RenderedExposure(self, base, d_start, d_end, exposure_taus(k))
-        return self.blurred.to_numpy().astype(np.float32)
+        return host_copy.read(self.blurred).astype(np.float32)
 
     def order_in_space(self) -> None:
         """[ours] Put the Gaussians (with their moments and statistics) in Morton order of their centres."""
@@ -361,7 +361,7 @@ class _RenderedExposure:
 
     def depth_buffers(self, depth: np.ndarray) -> tuple:
         """(target, zeroed gradient) device buffers of the mid view's depth loss, the target holding ``depth``."""
-        self.scene.depth_target.from_numpy(np.ascontiguousarray(depth, np.float32))
+        host_copy.write(self.scene.depth_target, depth)
         self.scene.grad_depth.fill(0.0)
         return self.scene.depth_target, self.scene.grad_depth
 
@@ -406,7 +406,7 @@ class _WarpedExposure:
     def depth_buffers(self, depth: np.ndarray) -> tuple:
         """(target, zeroed gradient) of the mid anchor's depth loss: ``depth`` padded with invalid (0) pixels."""
         scene = self.scene
-        scene.padded_depth_target.from_numpy(np.pad(np.asarray(depth, np.float32), scene.warp_margin))
+        host_copy.write(scene.padded_depth_target, np.pad(np.asarray(depth, np.float32), scene.warp_margin))
         scene.padded_grad_depth.fill(0.0)
         return scene.padded_depth_target, scene.padded_grad_depth
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .render import Adam, DeviceGaussians, float_type, np_dtype
+from .render import Adam, DeviceGaussians, float_type, host_copy
 
 ISOTROPIC_FIELDS = ("means", "log_scales", "opacity_logits", "colors")
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors")
@@ -39,8 +39,8 @@ class GaussianStore:
         self.adam = Adam(self.gaussians.params, self.gaussians.grads, {name: 0.0 for name in self.trained})
         self.adam.t = t
         for name, (m, v) in (moments or {}).items():
-            self.adam.moments[name][0].from_numpy(np.ascontiguousarray(m, np_dtype(self.dtype)))
-            self.adam.moments[name][1].from_numpy(np.ascontiguousarray(v, np_dtype(self.dtype)))
+            host_copy.write(self.adam.moments[name][0], m)
+            host_copy.write(self.adam.moments[name][1], v)
 
     @property
     def count(self) -> int:
@@ -48,15 +48,15 @@ class GaussianStore:
 
     def arrays(self) -> dict[str, np.ndarray]:
         """Every stored parameter as NumPy, trimmed to the live Gaussians."""
-        return {name: self.gaussians.params[name].to_numpy()[: self.count] for name in self.fields}
+        return {name: host_copy.read(self.gaussians.params[name], self.count) for name in self.fields}
 
     def array(self, name: str) -> np.ndarray:
         """One parameter as NumPy, trimmed to the live Gaussians."""
-        return self.gaussians.params[name].to_numpy()[: self.count]
+        return host_copy.read(self.gaussians.params[name], self.count)
 
     def moments(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Adam's first and second moments of every trained parameter, trimmed to the live Gaussians."""
-        return {name: (m.to_numpy()[: self.count], v.to_numpy()[: self.count])
+        return {name: (host_copy.read(m, self.count), host_copy.read(v, self.count))
                 for name, (m, v) in self.adam.moments.items()}
 
     def step(self, lrs: dict[str, float]) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 
 from .gaussian_store import GaussianStore, morton_order
 from .geometry import raster_intrinsics
-from .render import Camera, Rasterizer, losses, np_dtype, to_device
+from .render import Camera, Rasterizer, host_copy, losses, to_device
 from .splats import logit
 
 FIXED_SCALE = ("means", "opacity_logits")
@@ -62,7 +62,7 @@ class DepthRefiner:
         """Render one camera, add its weighted loss gradients to the Gaussians; (depth, coverage, dL/dpose)."""
         view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height),
                                        with_colour=False)
-        self.target_depth.from_numpy(np.ascontiguousarray(target_depth, np_dtype(self.gaussians.dtype)))
+        host_copy.write(self.target_depth, target_depth)
         self.grad_depth.fill(0.0)
         self.grad_alpha.fill(0.0)
         depth, coverage = losses.normalised_depth_l1_and_coverage(

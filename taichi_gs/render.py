@@ -13,8 +13,9 @@ Two ways in:
   ``losses`` (value returned, ``weight * gradient`` added into a given ndarray), ``blur`` (k-view
   average and its gradient), ``affine`` (a frame's affine colour transform and its gradient),
   ``density_stats`` (each Gaussian's positional gradient in pixels, for densification), ``warp`` ([ours]
-  a view near an anchor's pose sampled from the anchor's render through its depth), ``Adam`` and
-  ``to_device`` (upload targets), all re-exported here.
+  a view near an anchor's pose sampled from the anchor's render through its depth), ``Adam``,
+  ``to_device`` (upload targets) and ``host_copy`` (``read`` / ``write`` between NumPy and an ndarray
+  without a copy kernel on the CPU backend), all re-exported here.
 
 Stage 2 (isotropic fixed scale, depth only; ``K`` from ``geometry.raster_intrinsics``)::
 
@@ -61,7 +62,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import raster_intrinsics
-from .kernels import affine, blur, density_stats, losses, runtime, warp
+from .kernels import affine, blur, density_stats, host_copy, losses, runtime, warp
 from .kernels.optim import Adam
 from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, np_dtype, to_device
 from .splats import Splats
@@ -69,7 +70,7 @@ from .splats import Splats
 __all__ = [
     "Camera", "DeviceGaussians", "Rasterizer", "View", "RenderGrads", "RenderResult", "rasterize",
     "virtual_pose", "exposure_pose_gradients", "to_device", "losses", "blur", "affine", "density_stats",
-    "Adam", "render_views", "warp",
+    "Adam", "render_views", "warp", "host_copy",
 ]
 
 

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import row_spans, runtime, scan
+from . import host_copy, row_spans, runtime, scan
 
 N_GRAD_M = 12  # dL/dM, row-major, accumulated per row span
 
@@ -85,7 +85,7 @@ def backward(image: ti.Ndarray, M: np.ndarray, grad_out: ti.Ndarray, grad_image:
     rows = _scratch.get(f"affine rows {image.dtype}", height, image.dtype, (N_GRAD_M,))
     _kernels(image.dtype).backward(image, _matrix(M, image.dtype), grad_out, grad_image, parts, rows)
     by_row = rows if n_spans > height else parts  # one span per row: the partials are the rows' sums
-    return by_row.to_numpy()[:height].astype(np.float64).sum(axis=0).reshape(3, 4)
+    return host_copy.read(by_row, height).astype(np.float64).sum(axis=0).reshape(3, 4)
 
 
 def _check(image: ti.Ndarray, other: ti.Ndarray) -> None:

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import scan
+from . import host_copy, scan
 
 NOT_SEEN = -1.0  # a Gaussian whose positional gradient is exactly 0 this step
 
@@ -44,4 +44,4 @@ def image_plane_gradient(means: ti.Ndarray, grad_means: ti.Ndarray, n: int, cam_
     _kernels(means.dtype).image_plane_gradient(
         means, grad_means, n, ti.Vector(cam[:3, 3].tolist(), dt=means.dtype),
         ti.Vector(cam[:3, 2].tolist(), dt=means.dtype), float(focal), out)
-    return out.to_numpy()[:n].astype(np.float64)
+    return host_copy.read(out, n).astype(np.float64)

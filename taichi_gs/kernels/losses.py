@@ -27,8 +27,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import row_spans, runtime
-from .splat import np_dtype
+from . import host_copy, row_spans, runtime
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -350,7 +349,7 @@ def _partials(image: ti.Ndarray, cols: int) -> tuple[ti.Ndarray, ti.Ndarray]:
 def _window_on_device(dt) -> ti.Ndarray:
     """The D-SSIM window's taps (:data:`WINDOW`) as a device array, read by the kernel's tap loops."""
     window = ti.ndarray(dt, (len(WINDOW),))
-    window.from_numpy(np.array(WINDOW, np_dtype(dt)))
+    host_copy.write(window, np.array(WINDOW))
     return window
 
 
@@ -374,7 +373,7 @@ def pixel_weights(mask: np.ndarray, dtype) -> PixelWeights:
     if mask.ndim != 2 or not np.any(mask > 0):
         raise ValueError(f"a pixel mask must be a non-empty (H, W) array, got shape {mask.shape}")
     array = ti.ndarray(dtype, mask.shape)
-    array.from_numpy(mask.astype(np.float32 if dtype == ti.f32 else np.float64))
+    host_copy.write(array, mask)
     return PixelWeights(array, float(mask.sum()))
 
 

@@ -1,10 +1,13 @@
-"""Adam on device parameter buffers (one fused kernel launch per parameter tensor)."""
+"""Adam on device parameter buffers: one kernel launch updates up to five parameter tensors (the
+Gaussians' means, rotations, scales, opacities and colours) in one loop over their rows."""
 
 import functools
 import math
 from types import SimpleNamespace
 
 import taichi as ti
+
+SLOTS = 5  # parameter tensors per launch; a step over fewer fills the rest with an empty placeholder
 
 
 @functools.cache
@@ -17,13 +20,12 @@ def _kernels(dt) -> SimpleNamespace:
         v[index] = beta2 * v[index] + (1 - beta2) * g * g
         param[index] = param[index] - lr_t * m[index] / (ti.sqrt(v[index]) + eps_t)
 
-    arr = ti.types.ndarray(dtype=dt)
-
-    @ti.kernel
-    def adam_step(param: arr, grad: arr, m: arr, v: arr, n: ti.i32, lr_t: dt, beta1: dt, beta2: dt, eps_t: dt):
-        # one loop over the first n rows with the rest inside, by rank (compiled per rank): a flat index over
-        # every element would cost integer divisions per element on the CPU backend
-        for r in range(n):
+    @ti.func
+    def update_row(param: ti.template(), grad: ti.template(), m: ti.template(), v: ti.template(), r, rows, lr_t,
+                   beta1, beta2, eps_t):
+        # the row's elements inside, by rank (compiled per rank): a flat index over every element would cost
+        # integer divisions per element on the CPU backend
+        if r < rows:
             if ti.static(len(param.shape) == 1):
                 update(param, grad, m, v, r, lr_t, beta1, beta2, eps_t)
             elif ti.static(len(param.shape) == 2):
@@ -34,7 +36,29 @@ def _kernels(dt) -> SimpleNamespace:
                     for b in range(param.shape[2]):
                         update(param, grad, m, v, (r, a, b), lr_t, beta1, beta2, eps_t)
 
-    return SimpleNamespace(adam_step=adam_step)
+    arr = ti.types.ndarray(dtype=dt)
+    per_slot = ti.types.vector(SLOTS, dt)
+    rows_per_slot = ti.types.vector(SLOTS, ti.i32)
+
+    @ti.kernel
+    def adam_step(p0: arr, g0: arr, m0: arr, v0: arr, p1: arr, g1: arr, m1: arr, v1: arr,
+                  p2: arr, g2: arr, m2: arr, v2: arr, p3: arr, g3: arr, m3: arr, v3: arr,
+                  p4: arr, g4: arr, m4: arr, v4: arr,
+                  rows: rows_per_slot, n: ti.i32, lr_t: per_slot, beta1: dt, beta2: dt, eps_t: dt):
+        for r in range(n):
+            update_row(p0, g0, m0, v0, r, rows[0], lr_t[0], beta1, beta2, eps_t)
+            update_row(p1, g1, m1, v1, r, rows[1], lr_t[1], beta1, beta2, eps_t)
+            update_row(p2, g2, m2, v2, r, rows[2], lr_t[2], beta1, beta2, eps_t)
+            update_row(p3, g3, m3, v3, r, rows[3], lr_t[3], beta1, beta2, eps_t)
+            update_row(p4, g4, m4, v4, r, rows[4], lr_t[4], beta1, beta2, eps_t)
+
+    return SimpleNamespace(adam_step=adam_step, per_slot=per_slot, rows_per_slot=rows_per_slot)
+
+
+@functools.cache
+def _placeholder(dt) -> ti.Ndarray:
+    """A one-element tensor standing in for an unused slot (0 rows: never read)."""
+    return ti.ndarray(dt, (1,))
 
 
 class Adam:
@@ -63,11 +87,25 @@ class Adam:
         self.t += 1
         c1 = 1 - self.beta1**self.t
         c2 = 1 - self.beta2**self.t
-        for name, lr in self.lrs.items():
+        names = list(self.lrs)
+        for first in range(0, len(names), SLOTS):
+            self._launch(names[first:first + SLOTS], n, c1, c2)
+
+    def _launch(self, names: list[str], n: int | None, c1: float, c2: float) -> None:
+        """One kernel launch over the rows of up to :data:`SLOTS` parameters."""
+        dt = self.params[names[0]].dtype
+        k = _kernels(dt)
+        tensors, rows, lrs = [], [], []
+        for name in names:
             p = self.params[name]
-            k = _kernels(p.dtype)
             m, v = self.moments[name]
-            rows = p.shape[0] if n is None else n
+            tensors += [p, self.grads[name], m, v]
+            rows.append(p.shape[0] if n is None else n)
             # lr * m_hat / (sqrt(v_hat) + eps) == (lr sqrt(c2) / c1) * m / (sqrt(v) + eps sqrt(c2))
-            k.adam_step(p, self.grads[name], m, v, rows, lr * math.sqrt(c2) / c1, self.beta1, self.beta2,
-                        self.eps * math.sqrt(c2))
+            lrs.append(self.lrs[name] * math.sqrt(c2) / c1)
+        unused = SLOTS - len(names)
+        tensors += [_placeholder(dt)] * (4 * unused)
+        rows += [0] * unused
+        lrs += [0.0] * unused
+        k.adam_step(*tensors, k.rows_per_slot(rows), max(rows), k.per_slot(lrs), self.beta1, self.beta2,
+                    self.eps * math.sqrt(c2))

@@ -32,7 +32,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import project, rasterize, runtime, scan, tiles
+from . import host_copy, project, rasterize, runtime, scan, tiles
 from .project import (
     ALPHA_MIN, P_COLOR, P_CONIC_A, P_CONIC_B, P_CONIC_C, P_CUTOFF, P_DEPTH, P_MEAN_X, P_MEAN_Y, P_OPACITY, P_WIDTH,
 )
@@ -473,5 +473,5 @@ class GpuPipeline:
             out = s.get(f"pose_rows{level + 1}", n_out, self.dtype, (6,))
             self.k.sum_rows(rows, n, out)
             if n_out == 1:
-                return out.to_numpy()[0].astype(np.float64)
+                return host_copy.read(out, 1)[0].astype(np.float64)
             rows, n, level = out, n_out, level + 1

@@ -24,7 +24,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import project, raster_gpu, rasterize, runtime, scan, tiles
+from . import host_copy, project, raster_gpu, rasterize, runtime, scan, tiles
 from .project import P_WIDTH
 from .rasterize import B_WIDTH, E_WIDTH, F_WIDTH, N_SLOT_GRADS
 from .tiles import TILE
@@ -50,7 +50,7 @@ def to_device(arr: np.ndarray, dtype) -> ti.Ndarray:
         runtime.require_f64("float64 arrays")
     arr = np.ascontiguousarray(arr, dtype=np_dtype(dtype))
     nd = ti.ndarray(dtype, arr.shape)
-    nd.from_numpy(arr)
+    host_copy.write(nd, arr)
     return nd
 
 
@@ -342,18 +342,16 @@ class DeviceGaussians:
 
     def upload(self, **arrays: np.ndarray | None) -> None:
         """Overwrite the named parameters from NumPy (None entries are skipped)."""
-        ftype = np_dtype(self.dtype)
         for name, value in arrays.items():
             if value is None or self.n == 0:
                 continue
             target = self.params[name]
-            value = np.ascontiguousarray(np.asarray(value, dtype=ftype).reshape(target.shape))
-            target.from_numpy(value)
+            host_copy.write(target, value)
 
     def download(self, grads: bool = False) -> dict[str, np.ndarray]:
         """Parameters (or gradients) as NumPy arrays, trimmed to N rows."""
         source = self.grads if grads else self.params
-        return {k: v.to_numpy()[: self.n] for k, v in source.items()}
+        return {k: host_copy.read(v, self.n) for k, v in source.items()}
 
     def zero_grad(self) -> None:
         """Reset every gradient buffer to 0."""
@@ -407,7 +405,7 @@ class View:
 
     def tiles_per_gaussian(self) -> np.ndarray:
         """How many 16x16 tiles each of the n Gaussians touched (0 when culled), from its pixel box."""
-        rect = self.rect.to_numpy()[: self.n].astype(np.int64)
+        rect = host_copy.read(self.rect, self.n).astype(np.int64)
         visible = rect[:, 0] <= rect[:, 2]
         tiles_x = rect[:, 2] // TILE - rect[:, 0] // TILE + 1
         tiles_y = rect[:, 3] // TILE - rect[:, 1] // TILE + 1
@@ -415,9 +413,9 @@ class View:
 
     def to_numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb, depth, alpha) as float32 NumPy arrays."""
-        rgb = self.rgb.to_numpy().astype(np.float32)
-        depth = self.depth.to_numpy().astype(np.float32)
-        alpha = (1.0 - self.transmittance.to_numpy()).astype(np.float32)
+        rgb = host_copy.read(self.rgb).astype(np.float32)
+        depth = host_copy.read(self.depth).astype(np.float32)
+        alpha = (1.0 - host_copy.read(self.transmittance)).astype(np.float32)
         return rgb, depth, alpha
 
 
@@ -566,7 +564,7 @@ class Rasterizer:
             s["pose_part"], s["pose_chunks"], s["pose_grad"], gaussians.isotropic, gaussians.view_dependent,
             bool(view.with_colour),
         )
-        return s["pose_grad"].to_numpy().astype(np.float64)
+        return host_copy.read(s["pose_grad"]).astype(np.float64)
 
     def _state(self, columns: int, width: int, height: int) -> ti.Ndarray:
         """Per-pixel scratch of the blending passes, shared by all views: flat, ``columns`` values per pixel, each

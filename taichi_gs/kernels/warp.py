@@ -36,7 +36,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import runtime, scan
+from . import host_copy, runtime, scan
 
 FIXED_POINT_STEPS = 1  # depth refinements after the first guess (none are needed for a pure rotation)
 MIN_ALPHA = 0.5  # anchor pixels with less accumulated opacity have no surface: the fallback depth is used
@@ -388,7 +388,7 @@ def _args(transforms: np.ndarray, K: np.ndarray, margin: int, dtype) -> tuple:
     device = _scratch.get(f"warp transforms {dtype}", len(rows), dtype, (IDENTITY + 1,))
     padded = np.zeros(device.shape, rows.dtype)
     padded[: len(rows)] = rows
-    device.from_numpy(padded.astype(np.float64 if dtype == ti.f64 else np.float32))
+    host_copy.write(device, padded)
     K = np.asarray(K, dtype=np.float64)
     return device, ti.Vector([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dt=dtype)
 
@@ -442,7 +442,7 @@ def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, target
         private = _private_gradients(lanes, tuple(anchor_rgb.shape), dtype)
         kernels.backward_lanes(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, with_anchor, lanes,
                                private, grad_anchor, rows)
-    return rows.to_numpy()[: height * views].astype(np.float64).reshape(height, views, N_POSE).sum(axis=0)
+    return host_copy.read(rows, height * views).astype(np.float64).reshape(height, views, N_POSE).sum(axis=0)
 
 
 def _private_gradients(lanes: int, shape: tuple, dtype) -> ti.Ndarray:
