@@ -27,7 +27,8 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
-from . import host_copy, row_spans, runtime
+from . import row_spans, runtime
+from .splat import to_device
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -350,9 +351,7 @@ def _partials(image: ti.Ndarray, cols: int) -> tuple[ti.Ndarray, ti.Ndarray]:
 @functools.cache
 def _window_on_device(dt) -> ti.Ndarray:
     """The D-SSIM window's taps (:data:`WINDOW`) as a device array, read by the kernel's tap loops."""
-    window = ti.ndarray(dt, (len(WINDOW),))
-    host_copy.write(window, np.array(WINDOW))
-    return window
+    return to_device(np.array(WINDOW), dt)
 
 
 def _checked(pred, target, grad):
@@ -374,9 +373,7 @@ def pixel_weights(mask: np.ndarray, dtype) -> PixelWeights:
     mask = np.asarray(mask, np.float64)
     if mask.ndim != 2 or not np.any(mask > 0):
         raise ValueError(f"a pixel mask must be a non-empty (H, W) array, got shape {mask.shape}")
-    array = ti.ndarray(dtype, mask.shape)
-    host_copy.write(array, mask)
-    return PixelWeights(array, float(mask.sum()))
+    return PixelWeights(to_device(mask, dtype), float(mask.sum()))
 
 
 @functools.cache

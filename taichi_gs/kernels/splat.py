@@ -345,8 +345,7 @@ class DeviceGaussians:
         for name, value in arrays.items():
             if value is None or self.n == 0:
                 continue
-            target = self.params[name]
-            host_copy.write(target, value)
+            host_copy.write(self.params[name], value)
 
     def download(self, grads: bool = False) -> dict[str, np.ndarray]:
         """Parameters (or gradients) as NumPy arrays, trimmed to N rows."""
