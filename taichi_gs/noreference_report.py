@@ -9,6 +9,12 @@ Per split (``test`` = held-out views, ``train``), means over views of:
   (above 1: sharper than the capture); ``ground_truth_gradient_energy_ratio`` when sharp images exist.
 - ``dark_hole_fraction``: share of pixels dark in the render (below half the input's grey level,
   where the input is at least 0.1).
+- [ours] ``exposure_px``: the mean length (pixels, input resolution) of the streaks that the frame's sensor-depth
+  points draw over its exposure as stage 3 learned it (:func:`streaks.exposure_smear`, points seen from the
+  stage-3 mid-exposure pose): the blur the model found. It bounds what deblurring can add to the sharpness
+  above: a capture whose exposures draw 1-2 px streaks has next to no blur to remove, and held-out frames
+  whose own exposures draw as long streaks as their neighbours' are not sharp references. ``true_exposure_px``
+  is the same over the sequence's own exposure.txt where it has one (synthetic data).
 And for held-out views only:
 - ``held_out_psnr_db`` / ``held_out_ssim``: sharp render against the held-out frame's own image.
   With ``holdout = "sharpest"`` those frames are the least blurred of their windows: the closest
@@ -41,10 +47,11 @@ from typing import Any
 import numpy as np
 
 from .evaluate import psnr, ssim
-from .io.sequence import SOURCED, Sequence, read_color
+from .io.sequence import SOURCED, Sequence, read_color, read_exposure
 from .io.trajectory import read_tum
 from .noreference import dark_hole_fraction, gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from .plots import image_grid
+from .streaks import exposure_smear
 
 GRID_VIEWS = 4
 
@@ -82,6 +89,7 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     if seen is not None:
         result["protocol"] += (f"; every figure over the {100 * sourced.mean():.1f}% of pixels the camera saw (the "
                                "undistorted frame's border without a source pixel left out)")
+    streaks = _streak_lengths(deblur / "exposure.txt", sequence, poses)
     grid_rows, grid_titles, per_view = [], [], []
     for group, frames in (("test", test), ("train", train)):
         scores: dict[str, list[float]] = {}
@@ -94,6 +102,7 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
             values = {"reblur_psnr_db": _psnr(reblurred, frame, seen), "reblur_ssim": _ssim(reblurred, frame, seen),
                       "gradient_energy_ratio": gradient_energy(sharp, mask=seen) / max(energy, 1e-12),
                       "dark_hole_fraction": dark_hole_fraction(sharp, frame, mask=seen)}
+            values.update({key: lengths[i] for key, lengths in streaks.items()})
             if sequence.sharp_paths is not None:
                 values["ground_truth_gradient_energy_ratio"] = (gradient_energy(sequence.sharp(i), mask=seen)
                                                                 / max(energy, 1e-12))
@@ -123,6 +132,17 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
         image_grid(Path(run_dir) / "report" / "no_reference_views.png", grid_rows,
                    ["held-out frame", "sharp render", "re-blurred render", "warped neighbour"], grid_titles)
     return result
+
+
+def _streak_lengths(learned: Path, sequence: Sequence, mids: np.ndarray) -> dict[str, list[float]]:
+    """Per frame mean streak length (pixels) over stage 3's exposure (``exposure_px``, from ``learned``, its
+    exposure.txt, seen from the stage-3 mid-exposure poses ``mids``) and over the sequence's own
+    (``true_exposure_px``, from its ground-truth poses, where it has exposures), through the sensor depth."""
+    exposures = {"exposure_px": (read_exposure(learned, sequence.timestamps), mids),
+                 "true_exposure_px": (sequence.exposure_poses, sequence.gt_poses)}
+    K = sequence.K()
+    return {key: [exposure_smear(sequence.depth(i), K, views[i], *poses[i])[0] for i in range(len(sequence))]
+            for key, (poses, views) in exposures.items() if poses is not None}
 
 
 def _psnr(image: np.ndarray, reference: np.ndarray, seen: np.ndarray | None) -> float:

@@ -138,15 +138,16 @@ def format_metrics(metrics: dict[str, Any]) -> str:
 
 
 def _no_reference_lines(figures: dict[str, Any] | None) -> list[str]:
-    """The real-data protocol's means per split (re-blur, sharpness, dark holes) and, for held-out views, the
-    sharp render against the held-out frames beside the warped-neighbour floor and the re-blurred render on
-    the floor's pixels."""
+    """The real-data protocol's means per split (re-blur, sharpness, dark holes, exposure length) and, for held-out
+    views, the sharp render against the held-out frames beside the warped-neighbour floor and the re-blurred render
+    on the floor's pixels."""
     if not figures or not any(split in figures for split in ("test", "train")):
         return []
     lines = _split_table(
         "no-reference figures (real captures; metrics.json no_reference.protocol says how)", figures,
         [("re-blur dB", "reblur_psnr_db", 1, 2), ("SSIM", "reblur_ssim", 1, 3),
-         ("sharpness", "gradient_energy_ratio", 1, 3), ("dark %", "dark_hole_fraction", 100, 2)])
+         ("sharpness", "gradient_energy_ratio", 1, 3), ("dark %", "dark_hole_fraction", 100, 2),
+         ("blur px", "exposure_px", 1, 1)])
     held = figures.get("test", {})
     if "held_out_psnr_db" in held:
         lines += [f"  held-out frames against the sharp render: {_number(held['held_out_psnr_db'])} dB",

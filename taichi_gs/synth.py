@@ -30,14 +30,12 @@ import cv2
 import numpy as np
 
 from . import __version__
-from .geometry import (
-    backproject, interpolate, intrinsics_matrix, invert, pose_from_rt, project, se3_exp, se3_log,
-    so3_exp, transform,
-)
+from .geometry import intrinsics_matrix, invert, pose_from_rt, se3_exp, se3_log, so3_exp
 from .io.atomic import write_text
 from .io import jsonout
 from .io.images import encode_depth, to_uint8, write_png
 from .io.trajectory import format_tum, write_tum
+from .streaks import exposure_poses, exposure_smear, path_lengths, point_tracks
 from .synth_scenes import CAMERA_DISC_RADIUS_M, SCENES, build_scene  # noqa: F401 (CAMERA_DISC_RADIUS_M re-exported)
 
 GENERATOR_VERSION = 1
@@ -48,8 +46,6 @@ BLUR_TARGET_WIDTH_FRACTION = {"none": 0.0, "moderate": 7.5 / 640, "extreme": 30.
 MAX_EXPOSURE_FRACTION = 1.0
 SUBFRAME_STEP_PX = 0.8
 MAX_SUBFRAMES = 400
-SMEAR_SAMPLES = 9  # poses along the exposure at which smear paths are measured
-SMEAR_STRIDE_PX = 4  # pixel grid stride of the points whose smear is measured
 MOTION_PASS_DOWNSCALE = 4  # the exposure-fraction pass renders depth at 1/4 resolution
 
 DEPTH_NOISE_QUADRATIC = 0.0015  # sigma = 0.0015 z^2 (metres)
@@ -221,7 +217,7 @@ def _mean_frame_motion_px(config: SynthConfig, mid_poses: np.ndarray) -> float:
     motions = []
     for a, b in zip(mid_poses[:-1], mid_poses[1:]):
         _, depth = render_view(a, small, w, h, config.seed, config.scene)
-        lengths, _ = _path_lengths(_point_tracks(depth, small, a, [a, b]))
+        lengths, _ = path_lengths(point_tracks(depth, small, a, [a, b]))
         # No point in front of both cameras (a half turn between frames): count a full image width.
         motions.append(factor * lengths.mean() if lengths.size else float(config.width))
     return float(np.mean(motions))
@@ -254,39 +250,6 @@ def trajectory_poses(config: SynthConfig) -> tuple[np.ndarray, np.ndarray, np.nd
 
 # ---------------------------------------------------------------------------------------------
 # Blur
-
-
-def _point_tracks(depth: np.ndarray, K: np.ndarray, view: np.ndarray, poses, stride: int = 1) -> np.ndarray:
-    """Pixel positions (n_poses x n_points x 2) of the valid points of ``depth`` (seen from ``view``)
-    in each of ``poses``; points behind any of those cameras are left out."""
-    valid = depth[::stride, ::stride] > 0
-    world = transform(view, backproject(depth[::stride, ::stride], K)[valid])
-    cams = np.stack([transform(invert(pose), world) for pose in poses])
-    in_front = np.all(cams[..., 2] > 0.05, axis=0)
-    return project(cams[:, in_front], K)
-
-
-def _path_lengths(tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per point: total path length and longest single step of a track, in pixels."""
-    steps = np.linalg.norm(np.diff(tracks, axis=0), axis=-1)
-    return steps.sum(axis=0), steps.max(axis=0, initial=0.0)
-
-
-def exposure_poses(start: np.ndarray, end: np.ndarray, count: int) -> list[np.ndarray]:
-    """``count`` poses interpolated from start to end (the mid pose alone when count is 1)."""
-    taus = [0.5] if count == 1 else np.linspace(0.0, 1.0, count)
-    return [interpolate(start, end, tau) for tau in taus]
-
-
-def exposure_smear(
-    depth: np.ndarray, K: np.ndarray, mid: np.ndarray, start: np.ndarray, end: np.ndarray
-) -> tuple[float, float]:
-    """Mean and max length (pixels) of the streaks that points seen at mid-exposure draw."""
-    poses = exposure_poses(start, end, SMEAR_SAMPLES)
-    lengths, _ = _path_lengths(_point_tracks(depth, K, mid, poses, SMEAR_STRIDE_PX))
-    if lengths.size == 0:
-        return 0.0, 0.0
-    return float(lengths.mean()), float(lengths.max())
 
 
 def subframe_count(max_smear_px: float) -> int:

@@ -221,3 +221,46 @@ def test_protocol_leaves_pixels_without_a_camera_source_out(tmp_path):
     expected = np.mean([masked_psnr(sequence.sharp(i), sequence.color(i), seen) for i in test])
     assert held["held_out_psnr_db"] == pytest.approx(expected, abs=0.05)
     assert metrics["train"]["reblur_psnr_db"] > 45
+
+
+def test_protocol_reports_the_streaks_of_learned_and_true_exposures(tmp_path):
+    """``exposure_px`` is the mean streak over the exposure in the run's exposure.txt: a sideways slide of s metres
+    moves a point at depth z by f s / z pixels. ``true_exposure_px`` follows the sequence's own exposures and
+    agrees with the smear the generator recorded (from noise-free depth); a run whose exposure.txt does not
+    match the frames is an input error naming the file."""
+    synth = pytest.importorskip("taichi_gs.synth")
+    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.noreference_report import no_reference_metrics
+    from taichi_gs.stages.deblur import _format_exposure
+
+    synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
+                   tmp_path / "seq")
+    sequence = load_sequence(tmp_path / "seq")
+    stage = tmp_path / "run" / "deblur"
+    for i, name in enumerate(sequence.names):
+        for kind in ("sharp", "reblurred"):
+            write_png(stage / "renders" / kind / f"{name}.png", to_uint8(sequence.color(i)))
+    write_tum(stage / "trajectory.txt", sequence.timestamps, sequence.gt_poses)
+    (stage / "split.json").write_text(json.dumps({"train": [0, 2, 3, 5], "test": [1, 4], "holdout": "every",
+                                                  "holdout_every": 3}))
+    slide = 0.01 * np.arange(1, 7)  # metres along the camera's x axis, one length per frame
+    starts = sequence.gt_poses.copy()
+    starts[:, :3, 3] -= starts[:, :3, 0] * slide[:, None] / 2
+    ends = sequence.gt_poses.copy()
+    ends[:, :3, 3] += ends[:, :3, 0] * slide[:, None] / 2
+    exposure = np.stack([starts, ends], 1)
+    (stage / "exposure.txt").write_text(_format_exposure(sequence.timestamps, exposure))
+    metrics = no_reference_metrics(tmp_path / "run", sequence)
+    expected = []
+    for i in range(6):  # the points of every 4th pixel with depth
+        depth = sequence.depth(i)[::4, ::4]
+        expected.append(np.mean(sequence.K()[0, 0] * slide[i] / depth[depth > 0]))
+    views = metrics["per_view"]
+    np.testing.assert_allclose([v["exposure_px"] for v in views], expected, rtol=1e-4)
+    assert metrics["test"]["exposure_px"] == pytest.approx(np.mean([expected[1], expected[4]]), rel=1e-4)
+    assert "blur px" in format_metrics({"trajectory": {}, "no_reference": metrics})
+    recorded = json.loads((tmp_path / "seq" / "synth.json").read_text())["smear_px"]["per_frame_mean"]
+    np.testing.assert_allclose([v["true_exposure_px"] for v in views], recorded, rtol=0.03)
+    (stage / "exposure.txt").write_text(_format_exposure(sequence.timestamps[:5], exposure[:5]))
+    with pytest.raises(InputError, match="exposure.txt"):
+        no_reference_metrics(tmp_path / "run", sequence)

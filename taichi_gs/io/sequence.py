@@ -327,7 +327,7 @@ def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
     return Sequence(
         root, "taichi-gs", intrinsics, timestamps, rgb_paths, depth_paths,
         gt_poses=_ground_truth(root / "groundtruth.txt", timestamps),
-        exposure_poses=_exposure(root / "exposure.txt", timestamps),
+        exposure_poses=read_exposure(root / "exposure.txt", timestamps),
         sharp_paths=sharp_paths, sourced_path=sourced if sourced.is_file() else None,
         transform=None if depth_camera is None else RegisterDepth(depth_camera, intrinsics.K(), intrinsics.width,
                                                                    intrinsics.height),
@@ -556,8 +556,9 @@ def _blend(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
     return pose_from_rt(quat_to_rotmat(q), (1 - a) * T0[:3, 3] + a * T1[:3, 3])
 
 
-def _exposure(path: Path, timestamps: np.ndarray) -> np.ndarray | None:
-    """Exposure start/end poses per frame from exposure.txt (15 numbers per line)."""
+def read_exposure(path: Path, timestamps: np.ndarray) -> np.ndarray | None:
+    """(N, 2, 4, 4) exposure start and end poses (camera-to-world) per frame from an exposure.txt (a timestamp and
+    two TUM poses per line, one line per frame of ``timestamps``); None without the file."""
     if not path.is_file():
         return None
     rows = read_tum_rows(path, columns=15)
