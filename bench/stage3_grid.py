@@ -162,6 +162,7 @@ def figures(metrics: dict) -> dict:
         "reblur_test_db": test["reblur_psnr_db"], "reblur_train_db": reference["train"]["reblur_psnr_db"],
         "render_on_floor_pixels_db": test.get("render_on_warp_mask_psnr_db"),
         "floor_db": test.get("warped_neighbour_psnr_db"),
+        "blur_test_px": test.get("exposure_px"), "blur_train_px": reference["train"].get("exposure_px"),
         "ate_pose_mm": 1000 * trajectory["pose"]["ate_m"] if trajectory.get("pose") else None,
         "ate_deblur_mm": 1000 * trajectory["deblur"]["ate_m"] if trajectory.get("deblur") else None,
         "rpe_rot_deblur_deg": trajectory["deblur"]["rpe_rot_deg"] if trajectory.get("deblur") else None,
@@ -171,8 +172,9 @@ def figures(metrics: dict) -> dict:
 def table(results: list[dict]) -> str:
     """Markdown table, the default's row first per sequence, with the held-out difference to it."""
     lines = ["| sequence | arm | held-out PSNR / SSIM | re-blur test / train dB | render / floor dB "
-             "| ATE stage 1 / 3 mm | RPE rot deg | stage 3 s (CPU-s) | held-out vs default dB |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| learned blur test / train px | ATE stage 1 / 3 mm | RPE rot deg | stage 3 s (CPU-s) "
+             "| held-out vs default dB |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     defaults = {r["sequence"]: r for r in results if r["arm"] == DEFAULT_ARM}
     for r in results:
         base = defaults.get(r["sequence"])
@@ -180,7 +182,8 @@ def table(results: list[dict]) -> str:
         delta = f"{pair[0] - pair[1]:+.2f}" if pair and None not in pair else ""
         lines.append(f"| {r['sequence']} | {r['arm']} | {_num(r['held_out_psnr_db'])} / "
                      f"{_num(r['held_out_ssim'], 3)} | {_num(r['reblur_test_db'])} / {_num(r['reblur_train_db'])} | "
-                     f"{_num(r['render_on_floor_pixels_db'])} / {_num(r['floor_db'])} | {_num(r['ate_pose_mm'])} / "
+                     f"{_num(r['render_on_floor_pixels_db'])} / {_num(r['floor_db'])} | "
+                     f"{_num(r.get('blur_test_px'), 1)} / {_num(r.get('blur_train_px'), 1)} | {_num(r['ate_pose_mm'])} / "
                      f"{_num(r['ate_deblur_mm'])} | {_num(r['rpe_rot_deblur_deg'], 3)} | "
                      f"{r['deblur_wall_s']:.0f} ({r['deblur_cpu_s']:.0f}) | {delta} |")
     return "\n".join(lines)
