@@ -50,7 +50,7 @@ from .evaluate import psnr, ssim
 from .io.sequence import SOURCED, Sequence, read_color, read_exposure
 from .io.trajectory import read_tum
 from .noreference import dark_hole_fraction, gradient_energy, masked_psnr, masked_ssim, warp_to_view
-from .plots import image_grid
+from .plots import image_grid, line_plot
 from .streaks import exposure_smear
 
 GRID_VIEWS = 4
@@ -73,7 +73,8 @@ def protocol_text(split: dict[str, Any]) -> str:
 
 def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
     """The protocol's figures for a run with stage-3 output (None before stage 3); writes
-    RUN_DIR/report/no_reference_views.png (held-out frame | sharp render | re-blurred | warped neighbour)."""
+    RUN_DIR/report/no_reference_views.png (held-out frame | sharp render | re-blurred | warped neighbour) and
+    RUN_DIR/report/blur_streaks.png (each frame's streak length, learned and true)."""
     deblur = Path(run_dir) / "deblur"
     split_path, trajectory = deblur / "split.json", deblur / "trajectory.txt"
     if not split_path.is_file() or not trajectory.is_file():
@@ -90,6 +91,11 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
         result["protocol"] += (f"; every figure over the {100 * sourced.mean():.1f}% of pixels the camera saw (the "
                                "undistorted frame's border without a source pixel left out)")
     streaks = _streak_lengths(deblur / "exposure.txt", sequence, poses)
+    if streaks:
+        names = {"exposure_px": "learned (stage 3)", "true_exposure_px": "true (the sequence's exposure.txt)"}
+        line_plot(Path(run_dir) / "report" / "blur_streaks.png",
+                  {names[key]: (np.arange(len(lengths)), lengths) for key, lengths in streaks.items()},
+                  "blur: mean streak over each frame's exposure", "frame", "streak length (px)")
     grid_rows, grid_titles, per_view = [], [], []
     for group, frames in (("test", test), ("train", train)):
         scores: dict[str, list[float]] = {}

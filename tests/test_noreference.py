@@ -261,6 +261,7 @@ def test_protocol_reports_the_streaks_of_learned_and_true_exposures(tmp_path):
     assert "blur px" in format_metrics({"trajectory": {}, "no_reference": metrics})
     recorded = json.loads((tmp_path / "seq" / "synth.json").read_text())["smear_px"]["per_frame_mean"]
     np.testing.assert_allclose([v["true_exposure_px"] for v in views], recorded, rtol=0.03)
+    assert cv2.imread(str(tmp_path / "run" / "report" / "blur_streaks.png")) is not None
     (stage / "exposure.txt").write_text(_format_exposure(sequence.timestamps[:5], exposure[:5]))
     with pytest.raises(InputError, match="exposure.txt"):
         no_reference_metrics(tmp_path / "run", sequence)
