@@ -133,22 +133,30 @@ def test_masked_scores_and_dark_holes():
     assert dark_hole_fraction(np.zeros((20, 20, 3)), np.full((20, 20, 3), 0.05)) == 0.0  # input itself dark
 
 
-def test_protocol_on_a_run_whose_renders_are_the_truth(tmp_path):
-    """Sharp renders = sharp ground truth and re-blurred renders = the input: re-blur PSNR is that
-    of 8-bit rounding, the gradient-energy ratio equals ground truth's, and the held-out score is
-    the ground truth's against the blurred frame."""
+def _run_on_synthetic(tmp_path, renders):
+    """A 6-frame synthetic sequence (TMP/seq) and a run (TMP/run) whose stage-3 trajectory is the ground truth and
+    whose sharp and re-blurred renders of frame i are ``renders(sequence, i)``; (sequence, the run's deblur folder)."""
     synth = pytest.importorskip("taichi_gs.synth")
     from taichi_gs.io.sequence import load_sequence
-    from taichi_gs.noreference_report import no_reference_metrics
 
     synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
                    tmp_path / "seq")
     sequence = load_sequence(tmp_path / "seq")
     stage = tmp_path / "run" / "deblur"
     for i, name in enumerate(sequence.names):
-        write_png(stage / "renders" / "sharp" / f"{name}.png", to_uint8(sequence.sharp(i)))
-        write_png(stage / "renders" / "reblurred" / f"{name}.png", to_uint8(sequence.color(i)))
+        for kind, image in zip(("sharp", "reblurred"), renders(sequence, i)):
+            write_png(stage / "renders" / kind / f"{name}.png", to_uint8(image))
     write_tum(stage / "trajectory.txt", sequence.timestamps, sequence.gt_poses)
+    return sequence, stage
+
+
+def test_protocol_on_a_run_whose_renders_are_the_truth(tmp_path):
+    """Sharp renders = sharp ground truth and re-blurred renders = the input: re-blur PSNR is that
+    of 8-bit rounding, the gradient-energy ratio equals ground truth's, and the held-out score is
+    the ground truth's against the blurred frame."""
+    from taichi_gs.noreference_report import no_reference_metrics
+
+    sequence, stage = _run_on_synthetic(tmp_path, lambda sequence, i: (sequence.sharp(i), sequence.color(i)))
     train, test, sharpness = choose_split([sequence.color(i) for i in range(6)], "sharpest", 3)
     (stage / "split.json").write_text(json.dumps({"train": train, "test": test, "holdout": "sharpest",
                                                   "holdout_every": 3, "laplacian_variance": sharpness}))
@@ -228,19 +236,10 @@ def test_protocol_reports_the_streaks_of_learned_and_true_exposures(tmp_path):
     moves a point at depth z by f s / z pixels. ``true_exposure_px`` follows the sequence's own exposures and
     agrees with the smear the generator recorded (from noise-free depth); a run whose exposure.txt does not
     match the frames is an input error naming the file."""
-    synth = pytest.importorskip("taichi_gs.synth")
-    from taichi_gs.io.sequence import load_sequence
     from taichi_gs.noreference_report import no_reference_metrics
     from taichi_gs.stages.deblur import _format_exposure
 
-    synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
-                   tmp_path / "seq")
-    sequence = load_sequence(tmp_path / "seq")
-    stage = tmp_path / "run" / "deblur"
-    for i, name in enumerate(sequence.names):
-        for kind in ("sharp", "reblurred"):
-            write_png(stage / "renders" / kind / f"{name}.png", to_uint8(sequence.color(i)))
-    write_tum(stage / "trajectory.txt", sequence.timestamps, sequence.gt_poses)
+    sequence, stage = _run_on_synthetic(tmp_path, lambda sequence, i: (sequence.color(i), sequence.color(i)))
     (stage / "split.json").write_text(json.dumps({"train": [0, 2, 3, 5], "test": [1, 4], "holdout": "every",
                                                   "holdout_every": 3}))
     slide = 0.01 * np.arange(1, 7)  # metres along the camera's x axis, one length per frame
