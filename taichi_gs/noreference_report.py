@@ -149,9 +149,14 @@ def _streak_lengths(learned: Path, sequence: Sequence, mids: np.ndarray) -> dict
     (``true_exposure_px``, from its ground-truth poses, where it has exposures), through the sensor depth."""
     exposures = {"exposure_px": (read_exposure(learned, sequence.timestamps), mids),
                  "true_exposure_px": (sequence.exposure_poses, sequence.gt_poses)}
+    exposures = {key: pair for key, pair in exposures.items() if pair[0] is not None}
+    lengths: dict[str, list[float]] = {key: [] for key in exposures}
     K = sequence.K()
-    return {key: [exposure_smear(sequence.depth(i), K, views[i], *poses[i])[0] for i in range(len(sequence))]
-            for key, (poses, views) in exposures.items() if poses is not None}
+    for i in range(len(sequence) if exposures else 0):
+        depth = sequence.depth(i)  # read once for both exposures
+        for key, (poses, views) in exposures.items():
+            lengths[key].append(exposure_smear(depth, K, views[i], *poses[i])[0])
+    return lengths
 
 
 def _psnr(image: np.ndarray, reference: np.ndarray, seen: np.ndarray | None) -> float:

@@ -64,7 +64,7 @@ import numpy as np
 from .geometry import raster_intrinsics
 from .kernels import affine, blur, density_stats, host_copy, losses, runtime, warp
 from .kernels.optim import Adam
-from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, np_dtype, to_device
+from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, to_device
 from .splats import Splats
 
 __all__ = [

@@ -182,7 +182,6 @@ def test_adam_matches_numpy_reference() -> None:
     assert np.all(after[:3] != before[:3])
 
 
-
 def test_adam_over_more_tensors_than_one_launch_takes() -> None:
     """Seven tensors of ranks 1 to 3 (two launches of up to five), each at its own rate, match the NumPy
     reference; a step over the first rows leaves the others where they were."""
@@ -208,6 +207,7 @@ def test_adam_over_more_tensors_than_one_launch_takes() -> None:
     for name in shapes:
         np.testing.assert_allclose(params[name].to_numpy(), expected[name][0], rtol=1e-10, err_msg=name)
         np.testing.assert_allclose(opt.moments[name][1].to_numpy(), expected[name][2], rtol=1e-10, err_msg=name)
+
 
 def _sourced_mask(shape) -> np.ndarray:
     mask = np.ones(shape[:2], bool)

@@ -34,11 +34,6 @@ SCAN_CHUNK = 128
 COUNT_RUNS = 16  # runs of slots that the sort's counting pass splits into (fixed: the same result on any machine)
 
 
-def np_dtype(dtype) -> type:
-    """NumPy float type of a Taichi float type."""
-    return np.float64 if dtype == ti.f64 else np.float32
-
-
 def float_type(precision: str):
     """Taichi float type of "f32" or "f64"."""
     return {"f32": ti.f32, "f64": ti.f64}[precision]
@@ -48,9 +43,9 @@ def to_device(arr: np.ndarray, dtype) -> ti.Ndarray:
     """A new ndarray of Taichi float type ``dtype`` holding ``arr``."""
     if dtype == ti.f64:
         runtime.require_f64("float64 arrays")
-    arr = np.ascontiguousarray(arr, dtype=np_dtype(dtype))
+    arr = np.asarray(arr)
     nd = ti.ndarray(dtype, arr.shape)
-    host_copy.write(nd, arr)
+    host_copy.write(nd, arr)  # casts to the ndarray's type
     return nd
 
 
