@@ -3,6 +3,10 @@ sizes and resolutions, a per-phase breakdown, and the NumPy reference renderer o
 in the same run (so the speed ratio survives a noisy, shared machine).
 
     /work/venv/bin/python bench/raster.py [--arch cpu|cuda|vulkan|metal|auto] [--quick] [--combo N:WxH ...]
+        [--run OUT ...]
+
+``--run OUT`` adds a row per run folder: its newest splats rendered at every frame's newest pose in turn, at
+the sequence's resolution (a reconstructed scene's uneven tiles instead of the grid's random Gaussians).
 
 On a GPU backend the grid is 100k / 500k / 1M Gaussians at 640x480 (the GPU targets). "cores" is the
 process's CPU-seconds over wall seconds while forward + backward repeat (on a GPU backend: host threads).
@@ -13,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import itertools
 import os
 import platform
 import statistics
@@ -60,6 +65,21 @@ def scene(n: int, width: int, height: int, seed: int = 0):
     return [means, quats, log_scales, logits, colors], K
 
 
+def run_scene(run_dir: Path):
+    """(splats, K (the data's convention), width, height, poses) of a run folder: its newest splats and every
+    frame's newest pose."""
+    from taichi_gs.export import final_poses, newest_splats_path
+    from taichi_gs.io.ply import read_splats
+    from taichi_gs.pipeline import open_run_sequence
+
+    path = newest_splats_path(run_dir)
+    if path is None:
+        raise SystemExit(f"{run_dir}: no splats.ply in deblur/ or refine/")
+    sequence = open_run_sequence(run_dir)
+    intr = sequence.intrinsics
+    return read_splats(path), sequence.K(), intr.width, intr.height, final_poses(run_dir, sequence)
+
+
 def cpu_model() -> str:
     for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
         if line.startswith("model name"):
@@ -85,19 +105,78 @@ def timed(fn, repeats: int) -> tuple[float, float]:
     return statistics.median(times), cpu / sum(times)
 
 
+def synthetic_row(n: int, width: int, height: int):
+    """(device Gaussians, [camera]) of :func:`scene`."""
+    from taichi_gs.render import Camera, DeviceGaussians
+
+    params, K = scene(n, width, height)
+    return DeviceGaussians.from_numpy(*params), [Camera(K, np.eye(4), width, height)]
+
+
+def run_row(run_dir: Path):
+    """(device Gaussians, a camera per frame) of :func:`run_scene`."""
+    from taichi_gs.geometry import raster_intrinsics
+    from taichi_gs.render import Camera, upload_splats
+
+    splats, K, width, height, poses = run_scene(run_dir)
+    return upload_splats(splats), [Camera(raster_intrinsics(K), pose, width, height) for pose in poses]
+
+
+def measure(rast, gs, cameras) -> dict:
+    """Median forward and forward + backward ms, cores, per-phase ms (mean of 3 passes over the cameras),
+    slots and cover of rendering ``gs`` at ``cameras`` in turn (random image gradients)."""
+    import taichi as ti
+
+    from taichi_gs.kernels.splat import to_device
+
+    width, height = cameras[0].width, cameras[0].height
+    d_rgb = to_device(np.random.default_rng(1).normal(size=(height, width, 3)), ti.f32)
+    d_depth = to_device(np.random.default_rng(2).normal(size=(height, width)), ti.f32)
+    turns = itertools.cycle(cameras)
+
+    def forward():
+        rast.forward(gs, next(turns))
+        ti.sync()
+
+    def forward_backward():
+        view = rast.forward(gs, next(turns))
+        rast.backward(gs, view, d_rgb, d_depth)
+
+    repeats = max(15 if gs.n * width < 50_000 * 640 else 5, len(cameras))
+    row = {"forward": 1e3 * median_time(forward, repeats)}
+    t_all, row["cores"] = timed(forward_backward, repeats)
+    row["forward_backward"] = 1e3 * t_all
+    phases: dict = {}
+    passes = 3 * len(cameras)
+    slots = covered = 0.0
+    for i in range(passes):
+        view = rast.forward(gs, cameras[i % len(cameras)], timings=phases)
+        t0 = time.perf_counter()
+        rast.backward(gs, view, d_rgb, d_depth)
+        phases["backward"] = phases.get("backward", 0.0) + time.perf_counter() - t0
+        rect = view.rect.to_numpy()[:gs.n]
+        box = np.clip(rect[:, 2] - rect[:, 0] + 1, 0, None) * np.clip(rect[:, 3] - rect[:, 1] + 1, 0, None)
+        slots += view.n_slots / passes
+        covered += box.sum() / (width * height) / passes
+    row.update({k: 1e3 * v / passes for k, v in phases.items()})
+    row["slots"], row["cover"] = round(slots), covered
+    return row
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--arch", default="cpu", choices=runtime.ARCH_CHOICES)
     parser.add_argument("--quick", action="store_true", help="only the target and a few large combos")
     parser.add_argument("--combo", action="append", type=parse_combo, default=[],
                         help="N:WxH to run instead of the grid (repeatable), e.g. 5000:160x120")
+    parser.add_argument("--run", action="append", type=Path, default=[],
+                        help="also a run folder's newest splats at its frames' poses (repeatable)")
     args = parser.parse_args()
     backend = runtime.init(args.arch)
 
     import reference_renderer
     import taichi as ti
 
-    from taichi_gs.kernels.splat import to_device
     from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
 
     print(f"# {datetime.date.today()}  arch={backend.arch}  device {backend.device}  "
@@ -106,7 +185,7 @@ def main() -> None:
           "boxes per pixel")
     rast = Rasterizer(ti.f32)
     print(f"{'N':>8} {'res':>8} {'slots':>9} {'fwd ms':>8} {'fwd+bwd ms':>11} {'project':>8} {'sort':>7} "
-          f"{'blend':>7} {'backward':>9} {'cover':>6} {'cores':>6}")
+          f"{'blend':>7} {'backward':>9} {'cover':>6} {'cores':>6}  scene")
     grid = [(n, res) for n in SIZES for res in RESOLUTIONS]
     if args.combo:
         combos = sorted(set(args.combo))
@@ -114,38 +193,14 @@ def main() -> None:
         combos = sorted(set(GPU_GRID))
     else:
         combos = sorted(set(TARGETS) | set(QUICK if args.quick else grid))
-    for n, (width, height) in combos:
-        params, K = scene(n, width, height)
-        gs = DeviceGaussians.from_numpy(*params)
-        cam = Camera(K, np.eye(4), width, height)
-        d_rgb = to_device(np.random.default_rng(1).normal(size=(height, width, 3)), ti.f32)
-        d_depth = to_device(np.random.default_rng(2).normal(size=(height, width)), ti.f32)
-
-        def forward():
-            rast.forward(gs, cam)
-            ti.sync()
-
-        def forward_backward():
-            view = rast.forward(gs, cam)
-            rast.backward(gs, view, d_rgb, d_depth)
-
-        repeats = 15 if n * width < 50_000 * 640 else 5
-        t_fwd = median_time(forward, repeats)
-        t_all, cores = timed(forward_backward, repeats)
-        phases: dict = {}
-        for _ in range(3):
-            view = rast.forward(gs, cam, timings=phases)
-            t0 = time.perf_counter()
-            rast.backward(gs, view, d_rgb, d_depth)
-            phases["backward"] = phases.get("backward", 0.0) + time.perf_counter() - t0
-        ms = {k: 1e3 * v / 3 for k, v in phases.items()}
-        rect = view.rect.to_numpy()[:n]
-        box = np.clip(rect[:, 2] - rect[:, 0] + 1, 0, None) * np.clip(rect[:, 3] - rect[:, 1] + 1, 0, None)
-        cover = box.sum() / (width * height)
-        print(f"{n:>8} {width}x{height:<4} {view.n_slots:>9} {1e3 * t_fwd:>8.1f} {1e3 * t_all:>11.1f} "
-              f"{ms['project']:>8.1f} {ms['sort']:>7.1f} {ms['blend']:>7.1f} {ms['backward']:>9.1f} {cover:>6.1f} "
-              f"{cores:>6.2f}",
-              flush=True)
+    scenes = itertools.chain(((*synthetic_row(n, width, height), "random") for n, (width, height) in combos),
+                             ((*run_row(run), str(run)) for run in args.run))
+    for gs, cameras, label in scenes:
+        row = measure(rast, gs, cameras)
+        width, height = cameras[0].width, cameras[0].height
+        print(f"{gs.n:>8} {width}x{height:<4} {row['slots']:>9} {row['forward']:>8.1f} "
+              f"{row['forward_backward']:>11.1f} {row['project']:>8.1f} {row['sort']:>7.1f} {row['blend']:>7.1f} "
+              f"{row['backward']:>9.1f} {row['cover']:>6.1f} {row['cores']:>6.2f}  {label}", flush=True)
 
     # same small scene through the NumPy reference renderer and the Taichi forward
     params, K = scene(500, 160, 120)

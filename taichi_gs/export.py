@@ -150,7 +150,7 @@ def export_colmap(run_dir: Path, sequence: Sequence, dest: Path, max_points: int
 def export_ply(run_dir: Path, dest: Path) -> Path:
     """The newest splats.ply (3DGS layout, SH padded to degree 3 so that the reference loader and
     SIBR viewer open it; SuperSplat and gsplat read it too) and points.ply, into ``dest``."""
-    splats = _splats_path(run_dir)
+    splats = newest_splats_path(run_dir)
     cloud = _points_path(run_dir)
     if splats is None and cloud is None:
         raise InputError(run_dir, "no splats.ply or points.ply in any stage folder", "run 'taichi-gs reconstruct' first")
@@ -165,7 +165,7 @@ def export_3dgs(run_dir: Path, sequence: Sequence, dest: Path) -> Path:
     """A model folder as the reference 3DGS code writes it, for its SIBR viewer and tools:
     ``point_cloud/iteration_N/point_cloud.ply`` (SH degree 3), ``cameras.json``, ``cfg_args``,
     with the COLMAP dataset it names as source in ``dest/source``."""
-    splats = _splats_path(run_dir)
+    splats = newest_splats_path(run_dir)
     if splats is None:
         raise InputError(run_dir, "no splats.ply in deblur/ or refine/", "run 'taichi-gs reconstruct' first")
     stage = splats.parent.name
@@ -186,8 +186,10 @@ def export_3dgs(run_dir: Path, sequence: Sequence, dest: Path) -> Path:
     return dest
 
 
-def _splats_path(run_dir: Path) -> Path | None:
-    return next((run_dir / s / "splats.ply" for s in ("deblur", "refine") if (run_dir / s / "splats.ply").is_file()), None)
+def newest_splats_path(run_dir: Path) -> Path | None:
+    """The newest stage's splats.ply (deblur/, else refine/), or None."""
+    paths = (run_dir / stage / "splats.ply" for stage in ("deblur", "refine"))
+    return next((path for path in paths if path.is_file()), None)
 
 
 def _points_path(run_dir: Path) -> Path | None:
@@ -204,7 +206,7 @@ def render_path(run_dir: Path, sequence: Sequence, path: str, count: int, scale:
     RUN_DIR/render/PATH/NNNNNN.png and RUN_DIR/render/PATH.gif; returns the PNG folder."""
     from .render import render_views
 
-    splat_path = _splats_path(run_dir)
+    splat_path = newest_splats_path(run_dir)
     if splat_path is None:
         raise InputError(run_dir, "no splats.ply in deblur/ or refine/", "run 'taichi-gs reconstruct' first")
     splats = read_splats(splat_path)

@@ -70,7 +70,7 @@ from .splats import Splats
 __all__ = [
     "Camera", "DeviceGaussians", "Rasterizer", "View", "RenderGrads", "RenderResult", "rasterize",
     "virtual_pose", "exposure_pose_gradients", "to_device", "losses", "blur", "affine", "density_stats",
-    "Adam", "render_views", "warp", "host_copy",
+    "Adam", "render_views", "upload_splats", "warp", "host_copy",
 ]
 
 
@@ -144,13 +144,18 @@ def rasterize(
     return RenderResult(rgb, depth, alpha, rasterizer, gaussians, view, colors.shape)
 
 
+def upload_splats(splats: Splats) -> DeviceGaussians:
+    """``splats`` as float32 device Gaussians (starts the runtime if needed)."""
+    runtime.init()
+    return DeviceGaussians.from_numpy(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, splats.sh)
+
+
 def render_views(
     splats: Splats, K: np.ndarray, width: int, height: int, poses: Iterable[np.ndarray], background=(0.0, 0.0, 0.0)
 ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Render one scene from many cameras: yields (rgb, depth, alpha) float32 per pose. ``K`` is in
     the data's OpenCV convention; the Gaussians are uploaded once."""
-    runtime.init()
-    gaussians = DeviceGaussians.from_numpy(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, splats.sh)
+    gaussians = upload_splats(splats)
     rasterizer = Rasterizer(gaussians.dtype)
     K_raster = raster_intrinsics(K)
     for pose in poses:
