@@ -1,5 +1,6 @@
 """Every benchmark script still imports and parses its arguments (bench/refine.py and bench/refine_keep.py
-imported a helper that bench/pose.py had dropped, and failed before doing anything)."""
+imported a helper that bench/pose.py had dropped, and failed before doing anything); bench/raster.py times a run
+folder's scene."""
 
 from __future__ import annotations
 
