@@ -65,21 +65,6 @@ def scene(n: int, width: int, height: int, seed: int = 0):
     return [means, quats, log_scales, logits, colors], K
 
 
-def run_scene(run_dir: Path):
-    """(splats, K (the data's convention), width, height, poses) of a run folder: its newest splats and every
-    frame's newest pose."""
-    from taichi_gs.export import final_poses, newest_splats_path
-    from taichi_gs.io.ply import read_splats
-    from taichi_gs.pipeline import open_run_sequence
-
-    path = newest_splats_path(run_dir)
-    if path is None:
-        raise SystemExit(f"{run_dir}: no splats.ply in deblur/ or refine/")
-    sequence = open_run_sequence(run_dir)
-    intr = sequence.intrinsics
-    return read_splats(path), sequence.K(), intr.width, intr.height, final_poses(run_dir, sequence)
-
-
 def cpu_model() -> str:
     for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").exists() else []:
         if line.startswith("model name"):
@@ -114,12 +99,20 @@ def synthetic_row(n: int, width: int, height: int):
 
 
 def run_row(run_dir: Path):
-    """(device Gaussians, a camera per frame) of :func:`run_scene`."""
+    """(device Gaussians, a camera per frame) of a run folder: its newest splats, every frame's newest pose."""
+    from taichi_gs.export import final_poses, newest_splats_path
     from taichi_gs.geometry import raster_intrinsics
+    from taichi_gs.io.ply import read_splats
+    from taichi_gs.pipeline import open_run_sequence
     from taichi_gs.render import Camera, upload_splats
 
-    splats, K, width, height, poses = run_scene(run_dir)
-    return upload_splats(splats), [Camera(raster_intrinsics(K), pose, width, height) for pose in poses]
+    path = newest_splats_path(run_dir)
+    if path is None:
+        raise SystemExit(f"{run_dir}: no splats.ply in deblur/ or refine/")
+    sequence = open_run_sequence(run_dir)
+    K, intr = raster_intrinsics(sequence.K()), sequence.intrinsics
+    cameras = [Camera(K, pose, intr.width, intr.height) for pose in final_poses(run_dir, sequence)]
+    return upload_splats(read_splats(path)), cameras
 
 
 def measure(rast, gs, cameras) -> dict:

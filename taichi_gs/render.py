@@ -145,8 +145,7 @@ def rasterize(
 
 
 def upload_splats(splats: Splats) -> DeviceGaussians:
-    """``splats`` as float32 device Gaussians (starts the runtime if needed)."""
-    runtime.init()
+    """``splats`` as float32 device Gaussians (DeviceGaussians starts the runtime if needed)."""
     return DeviceGaussians.from_numpy(splats.means, splats.quats, splats.log_scales, splats.opacity_logits, splats.sh)
 
 
