@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+from contextlib import contextmanager
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,10 +14,11 @@ from taichi_gs.standins import perturbed
 from taichi_gs.errors import InputError
 from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert
-from taichi_gs.io.ply import read_point_cloud, read_splats
-from taichi_gs.io.trajectory import read_tum
+from taichi_gs.io.ply import read_point_cloud, read_splats, write_point_cloud
+from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.stages.pose import PoseConfig, fuse_points
-from taichi_gs.stages.refine import PRESETS, load_stage1, run_refine
+from taichi_gs.stages.declaration import StageContext
+from taichi_gs.stages.refine import PRESETS, STAGE, gaussian_footprint_px, load_stage1, run_refine
 
 synth = pytest.importorskip("taichi_gs.synth")
 
@@ -139,3 +142,48 @@ def test_spatial_order_changes_the_memory_layout_not_the_steps():
     np.testing.assert_array_equal(kept[back], plain.kept_indices())
     np.testing.assert_allclose(ordered.means()[back], plain.means(), atol=1e-5)
     np.testing.assert_allclose(ordered.opacity_logits()[back], plain.opacity_logits(), atol=1e-4)
+
+
+class _PlaneDepths:
+    """A stand-in sequence: frame i sees a plane at ``depths[i]`` metres (0: no valid depth), focal 500 px."""
+
+    intrinsics = SimpleNamespace(fx=500.0)
+
+    def __init__(self, depths: list[float]):
+        self.depths = depths
+
+    def __len__(self) -> int:
+        return len(self.depths)
+
+    def depth(self, i: int) -> np.ndarray:
+        return np.full((6, 8), self.depths[i], np.float32)
+
+
+def test_the_gaussian_footprint_is_the_scale_in_pixels_at_the_median_depth():
+    assert gaussian_footprint_px(_PlaneDepths([2.0, 2.0, 2.0]), 0.01) == pytest.approx((2.5, 2.0))
+    # frames without depth take the others' median; the median over frames, not the mean (1, 2, 2, 4 m -> 2 m)
+    assert gaussian_footprint_px(_PlaneDepths([1.0, 0.0, 2.0, 4.0]), 0.01) == pytest.approx((2.5, 2.0))
+    # a long sequence is sampled at 8 evenly spread frames: 4 in each half here, so the median lies between them
+    pixels, depth = gaussian_footprint_px(_PlaneDepths([1.0] * 50 + [3.0] * 50), 0.004)
+    assert depth == 2.0 and pixels == pytest.approx(1.0)
+    planes = _PlaneDepths([4.0])
+    assert gaussian_footprint_px(planes, 0.005)[0] == pytest.approx(gaussian_footprint_px(planes, 0.01)[0] / 2)
+
+
+def test_the_stage_summary_names_the_gaussians_width_in_pixels(scene, tmp_path):
+    sequence, _, start, points, colors = scene
+    (tmp_path / "pose").mkdir()
+    write_tum(tmp_path / "pose" / "trajectory.txt", sequence.timestamps, start)
+    write_point_cloud(tmp_path / "pose" / "points.ply", points, colors)
+
+    @contextmanager
+    def no_progress(description, total):
+        yield lambda *args, **kwargs: None
+
+    config = dataclasses.replace(CONFIG, iterations_per_frame=0)
+    summary = STAGE.run(StageContext(sequence, tmp_path, config, no_progress)).summary
+    pixels, depth = gaussian_footprint_px(sequence, config.voxel_size / 2)
+    assert f"sigma 1 cm = {pixels:.2f} px at the median depth {depth:.2f} m" in summary, summary
+    median = np.median([np.median(sequence.depth(i)[sequence.depth(i) > 0]) for i in range(len(sequence))])
+    assert depth == pytest.approx(median, rel=1e-6)  # 8 frames: every one sampled
+    assert pixels == pytest.approx(0.01 * sequence.intrinsics.fx / median, rel=1e-6)

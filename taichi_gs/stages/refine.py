@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from ..config import tomllib
+from ..deblur_model import median_depths
 from ..errors import InputError
 from ..geometry import adjoint, invert, se3_exp, se3_log
 from ..io.atomic import write_text
@@ -52,6 +53,7 @@ from .row_adam import RowAdam
 from .schedule import ConvergenceWatch, downsample_depth, exp_decay, scaled_intrinsics
 
 
+FOOTPRINT_FRAMES = 8  # frames whose depth sets the Gaussians' footprint in pixels (evenly spread)
 PARAMETER_CHECK_EVERY = 50  # iterations between divergence checks of the parameters (a device copy)
 
 
@@ -272,6 +274,15 @@ def run_refine(
     return RefineResult(poses, history, model.count, seconds, done)
 
 
+def gaussian_footprint_px(sequence: Sequence, scale_m: float) -> tuple[float, float]:
+    """[ours] How wide stage 2's Gaussians (sigma ``scale_m``) are in pixels of the input frames at the
+    sequence's median depth, and that depth in metres: the fused cloud's voxel is in metres, so the same
+    Gaussian is finer in pixels far away and at low resolution."""
+    frames = np.unique(np.linspace(0, len(sequence) - 1, min(FOOTPRINT_FRAMES, len(sequence))).round().astype(int))
+    depth = float(np.median(median_depths([sequence.depth(int(i)) for i in frames])))
+    return scale_m * sequence.intrinsics.fx / depth, depth
+
+
 def _convergence_watch(config: RefineConfig, n_frames: int) -> ConvergenceWatch:
     """[ours] The convergence stop of the schedule (window 0: never stops before the cap)."""
     return ConvergenceWatch(config.converge_window_per_frame * n_frames, config.converge_rel_tol,
@@ -369,9 +380,14 @@ def _run_stage(context: StageContext) -> StageRun:
     config = context.config
     with context.progress(STAGE.title, config.iterations_per_frame * len(context.sequence)) as update:
         result = run_refine(context.sequence, initial, cloud, colors, context.out, config, progress=update)
+    scale = config.voxel_size / 2
+    pixels, depth = gaussian_footprint_px(context.sequence, scale)
+    footprint = f"sigma {scale * 100:.2g} cm = {pixels:.2f} px at the median depth {depth:.2f} m"
     if result.iterations == 0:
-        return StageRun(f"{result.gaussians} Gaussians from stage 1's cloud, not trained (iterations_per_frame = 0)")
-    return StageRun(f"{result.gaussians} Gaussians, {result.seconds_per_iteration * 1000:.1f} ms/iteration")
+        return StageRun(f"{result.gaussians} Gaussians from stage 1's cloud ({footprint}), not trained "
+                        "(iterations_per_frame = 0)")
+    milliseconds = result.seconds_per_iteration * 1000
+    return StageRun(f"{result.gaussians} Gaussians ({footprint}), {milliseconds:.1f} ms/iteration")
 
 
 def _stage_inputs(out: Path, config: RefineConfig, poses: Path | None, points: Path | None) -> StageInputs:
