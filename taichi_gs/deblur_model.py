@@ -13,7 +13,8 @@ import numpy as np
 from .density import DensityControl
 from .gaussian_store import FIELDS, GaussianStore, morton_order
 from .geometry import (
-    exposure_pose_gradients, invert, raster_intrinsics, relative_pose_gradients, so3_log, virtual_pose,
+    exposure_pose_gradients, invert, median_depth, raster_intrinsics, relative_pose_gradients, so3_log,
+    virtual_pose,
 )
 from .noreference import eroded
 from .render import Camera, Rasterizer, affine, blur, host_copy, losses, to_device, warp
@@ -331,21 +332,6 @@ class BlurScene:
 def _as_arrays(splats: Splats) -> dict[str, np.ndarray]:
     return {"means": splats.means, "quats": splats.quats, "log_scales": splats.log_scales,
             "opacity_logits": splats.opacity_logits, "colors": splats.sh}
-
-
-def median_depth(depth: np.ndarray, default: float = 1.0) -> float:
-    """Median valid (> 0) depth of a frame, ``default`` (1 m) without any."""
-    valid = depth[depth > 0]
-    return float(np.median(valid)) if valid.size else default
-
-
-def median_depths(depths: list[np.ndarray]) -> np.ndarray:
-    """Each frame's :func:`median_depth`; a frame without valid depth (a dropped sensor frame) takes the median of
-    the others' (1 m when none has any), so that its exposure's length in pixels stays at the scene's depth."""
-    medians = np.array([median_depth(d, default=np.nan) for d in depths])
-    missing = np.isnan(medians)
-    medians[missing] = median_depth(medians[~missing])
-    return medians
 
 
 class _RenderedExposure:

@@ -1,4 +1,5 @@
-"""Rigid-body maths in NumPy: SO(3)/SE(3) exp and log, quaternions, interpolation, projection.
+"""Rigid-body maths in NumPy: SO(3)/SE(3) exp and log, quaternions, interpolation, projection, and a depth
+map's median.
 
 Conventions used everywhere in taichi-gs:
 - A pose is a camera-to-world 4x4 matrix with OpenCV camera axes (x right, y down, z forward).
@@ -262,3 +263,18 @@ def exposure_pose_gradients(
         g_start += (1.0 - tau) * g_xi
         g_end += tau * g_xi
     return g_start, g_end
+
+
+def median_depth(depth: np.ndarray, default: float = 1.0) -> float:
+    """Median valid (> 0) depth of a frame, ``default`` (1 m) without any."""
+    valid = depth[depth > 0]
+    return float(np.median(valid)) if valid.size else default
+
+
+def median_depths(depths: list[np.ndarray]) -> np.ndarray:
+    """Each frame's :func:`median_depth`; a frame without valid depth (a dropped sensor frame) takes the median of
+    the others' (1 m when none has any), so that its exposure's length in pixels stays at the scene's depth."""
+    medians = np.array([median_depth(d, default=np.nan) for d in depths])
+    missing = np.isnan(medians)
+    medians[missing] = median_depth(medians[~missing])
+    return medians

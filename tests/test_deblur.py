@@ -117,7 +117,7 @@ def test_training_colour_downsampling_is_the_block_mean():
 
 
 def test_a_frame_without_depth_takes_the_other_frames_median_depth():
-    from taichi_gs.deblur_model import median_depths
+    from taichi_gs.geometry import median_depths
 
     frames = [np.full((4, 5), 2.0), np.zeros((4, 5)), np.full((4, 5), 3.0)]
     frames[0][0, 0] = 0.0  # invalid pixels do not count

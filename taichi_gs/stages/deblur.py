@@ -21,10 +21,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..deblur_model import BlurScene, FrozenAnchors, Rates, anchor_count, median_depths, warped_views
+from ..deblur_model import BlurScene, FrozenAnchors, Rates, anchor_count, warped_views
 from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
-from ..geometry import invert, se3_log, virtual_pose
+from ..geometry import invert, median_depths, se3_log, virtual_pose
 from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import read_splats, write_splats

@@ -34,9 +34,8 @@ import cv2
 import numpy as np
 
 from ..config import tomllib
-from ..deblur_model import median_depths
 from ..errors import InputError
-from ..geometry import adjoint, invert, se3_exp, se3_log
+from ..geometry import adjoint, invert, median_depths, se3_exp, se3_log
 from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import read_point_cloud, write_point_cloud, write_splats
