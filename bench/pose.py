@@ -38,7 +38,9 @@ method) above ``--break-ratio`` x the sequence's median: 7-Scenes' reference jum
 which every method's ATE carries; the ATE between breaks aligns each stretch between them on its own.
 After the table, a ground-truth check (with ``ours``): the pairs whose ground-truth relative pose aligns the two
 frames far worse than ours does (verification score above ``--gt-check-ratio`` x ours'), where a pair error
-measures the ground truth more than the method (real captures' ground truth has glitches).
+measures the ground truth more than the method (real captures' ground truth has glitches). Then issue 11's
+targets for ``ours`` on the run (``target_report``): on how many sequences each is met, and the misses with their
+figures (a folder given with ``--sequence`` counts as synthetic when ``taichi-gs synth`` made it).
 """
 
 from __future__ import annotations
@@ -263,14 +265,89 @@ def ground_truth_check(name: str, sequence, result, truth_scores: np.ndarray, ra
     return lines
 
 
-def row(name: str, method: str, poses: np.ndarray, gt: np.ndarray, breaks: list[int], seconds: float | None,
-        extra: str) -> str:
+PEERS = ("O3D hybrid", "O3D ICP", "O3D dense SLAM", "DIS RANSAC")
+
+
+@dataclasses.dataclass(frozen=True)
+class Measured:
+    """One method's figures on one sequence, as the table prints them and issue 11's targets read them."""
+
+    sequence: str
+    method: str
+    synthetic: bool
+    width: int
+    ate_mm: float
+    segment_ate_mm: float
+    rpe_trans_mm: float
+    rpe_rot_deg: float
+    rpe_rot_drift_deg: float
+    pair_errors_mm: np.ndarray
+    seconds: float | None
+    extra: str
+
+
+def measure(name: str, method: str, poses: np.ndarray, gt: np.ndarray, breaks: list[int], seconds: float | None,
+            extra: str, synthetic: bool, width: int) -> Measured:
+    """``poses`` against the reference ``gt``: ATE (also between reference ``breaks``), RPE, pair errors."""
     t = trajectory_errors(poses, gt)
-    e = pair_errors_mm(poses, gt)
-    s = "-" if seconds is None else f"{seconds:.2f}"
-    return (f"| {name} | {method} | {1000 * t.ate_m:.1f} | {1000 * segment_ate(poses, gt, breaks):.1f} | "
-            f"{1000 * t.rpe_trans_m:.1f} | {t.rpe_rot_deg:.3f} | {t.rpe_rot_drift_deg:.3f} | "
-            f"{np.median(e):.1f} / {np.percentile(e, 90):.1f} / {e.max():.1f} | {extra} | {s} |")
+    return Measured(name, method, synthetic, width, 1000 * t.ate_m, 1000 * segment_ate(poses, gt, breaks),
+                    1000 * t.rpe_trans_m, t.rpe_rot_deg, t.rpe_rot_drift_deg, pair_errors_mm(poses, gt), seconds, extra)
+
+
+def row(m: Measured) -> str:
+    """The table's Markdown row of ``m``."""
+    e = m.pair_errors_mm
+    s = "-" if m.seconds is None else f"{m.seconds:.2f}"
+    return (f"| {m.sequence} | {m.method} | {m.ate_mm:.1f} | {m.segment_ate_mm:.1f} | {m.rpe_trans_mm:.1f} | "
+            f"{m.rpe_rot_deg:.3f} | {m.rpe_rot_drift_deg:.3f} | "
+            f"{np.median(e):.1f} / {np.percentile(e, 90):.1f} / {e.max():.1f} | {m.extra} | {s} |")
+
+
+def best_peer(measured: list[Measured], sequence: str) -> Measured | None:
+    """The peer (``PEERS``) with the lowest ATE on ``sequence``, if any ran there."""
+    peers = [m for m in measured if m.sequence == sequence and m.method in PEERS and np.isfinite(m.ate_mm)]
+    return min(peers, key=lambda m: m.ate_mm, default=None)
+
+
+def target_report(measured: list[Measured], method: str = "ours") -> list[str]:
+    """Issue 11's targets for ``method`` on this run, one line each: on how many sequences it is met, and the
+    misses with their figures. ATE at most 1/3 of the best peer's (where a peer ran) and at most 5 mm on
+    synthetic sequences; RPE rotation under 0.1 deg; no pair error above 3x the sequence's median; at most 2 s
+    per pair at 640 px width or more (the table's seconds per pair)."""
+    ours = [m for m in measured if m.method == method]
+
+    def ratio(m: Measured) -> float:
+        median = float(np.median(m.pair_errors_mm))
+        return float(m.pair_errors_mm.max()) / median if median > 0 else float("inf")
+
+    def peer_text(m: Measured) -> str:
+        peer = best_peer(measured, m.sequence)
+        return f"{m.ate_mm:.1f} mm against {peer.method}'s {peer.ate_mm:.1f}"
+
+    targets = [
+        ("ATE at most 1/3 of the best peer's", lambda m: best_peer(measured, m.sequence) is not None,
+         lambda m: m.ate_mm <= best_peer(measured, m.sequence).ate_mm / 3, peer_text),
+        ("ATE at most 5 mm on synthetic sequences", lambda m: m.synthetic, lambda m: m.ate_mm <= 5.0,
+         lambda m: f"{m.ate_mm:.1f} mm"),
+        ("RPE rotation under 0.1 deg", lambda m: True, lambda m: m.rpe_rot_deg < 0.1,
+         lambda m: f"{m.rpe_rot_deg:.3f} deg"),
+        ("no pair error above 3x the median", lambda m: True, lambda m: ratio(m) <= 3.0,
+         lambda m: f"{m.pair_errors_mm.max():.1f} mm, {ratio(m):.1f}x {np.median(m.pair_errors_mm):.1f}"),
+        ("at most 2 s per pair at 640x480", lambda m: m.width >= 640 and m.seconds is not None,
+         lambda m: m.seconds <= 2.0, lambda m: f"{m.seconds:.2f} s"),
+    ]
+    lines = []
+    for label, applies, met, describe in targets:
+        rows = [m for m in ours if applies(m)]
+        if not rows:
+            lines.append(f"- {label}: no sequence of this run applies")
+            continue
+        missed = [m for m in rows if not met(m)]
+        text = f"- {label}: met on {len(rows) - len(missed)} of {len(rows)}"
+        if missed:
+            text += "; missed: " + "; ".join(f"{m.sequence} ({describe(m)})" for m in missed)
+        lines.append(text)
+    return lines
 
 
 def main() -> None:
@@ -295,8 +372,8 @@ def main() -> None:
     print("| sequence | method | ATE (mm) | ATE between reference breaks (mm) | RPE trans (mm) | RPE rot (deg) | "
           "RPE rot drift (deg/pair) | pair err p50 / p90 / max (mm) | weak / pruned | s/pair |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    suspects, break_lines = [], []
-    for name, sequence in sequences(args, root):
+    suspects, break_lines, measured = [], [], []
+    for name, sequence, synthetic in sequences(args, root):
         gt = sequence.gt_poses
         truth_scores = pair_scores(sequence, reference_relatives(gt))
         breaks = reference_breaks(truth_scores, args.break_ratio)
@@ -323,12 +400,16 @@ def main() -> None:
                 poses, seconds, extra = run_dis_ransac(sequence)
             else:
                 raise SystemExit(f"unknown method {method!r}")
-            print(row(name, method, poses, gt, breaks, seconds, extra), flush=True)
+            measured.append(measure(name, method, poses, gt, breaks, seconds, extra, synthetic,
+                                    sequence.intrinsics.width))
+            print(row(measured[-1]), flush=True)
         if ours is not None and args.gt_check_ratio > 0:
             suspects += ground_truth_check(name, sequence, ours, truth_scores, args.gt_check_ratio)
     if args.gt_check_ratio > 0 and "ours" in methods:
         print(f"\nGround-truth check, pairs whose ground truth scores above {args.gt_check_ratio:g}x ours: "
               f"{len(suspects) or 'none'}", *suspects, sep="\n")
+    if any(m.method == "ours" for m in measured):
+        print("\nIssue 11's targets for ours on this run:", *target_report(measured), sep="\n")
     if args.break_ratio > 0:
         print(f"\nReference breaks, pairs whose ground truth scores above {args.break_ratio:g}x its median: "
               f"{len(break_lines) or 'none'}", *break_lines, sep="\n")
@@ -339,10 +420,11 @@ def slug(label: str) -> str:
 
 
 def sequences(args, root: Path):
-    """(name, sequence) of the given folders, or of the synthetic and 7-Scenes grid."""
+    """(name, sequence, synthetic) of the given folders, or of the synthetic and 7-Scenes grid; a folder is
+    synthetic when ``taichi-gs synth`` made it (its synth.json)."""
     if args.sequence:
         for folder in args.sequence:
-            yield folder.name, load_sequence(folder, count=args.frames)
+            yield folder.name, load_sequence(folder, count=args.frames), (folder / "synth.json").is_file()
         return
     from taichi_gs.synth import SynthConfig, generate
 
@@ -354,10 +436,10 @@ def sequences(args, root: Path):
         if not (folder / "frames.txt").is_file():
             generate(SynthConfig(width=w, height=h, frames=args.frames, trajectory=trajectory, scene=scene,
                                  blur="extreme", seed=seed), folder)
-        yield f"{scene} {trajectory} {w}x{h} seed {seed}", load_sequence(folder)
+        yield f"{scene} {trajectory} {w}x{h} seed {seed}", load_sequence(folder), True
     for every in (int(e) for e in args.real_every.split(",") if e):
         yield f"7-Scenes every {every} x{args.real_scale:g}", load_sequence(
-            SEVEN_SCENES, camera="shipped", every=every, count=args.frames, scale=args.real_scale)
+            SEVEN_SCENES, camera="shipped", every=every, count=args.frames, scale=args.real_scale), False
 
 
 if __name__ == "__main__":

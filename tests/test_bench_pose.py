@@ -77,3 +77,41 @@ def test_a_variant_that_changes_only_the_graph_starts_from_the_earlier_pairs(tmp
         assert seconds == 1.5  # the pairs' own seconds and the graph's
     ours_pairs = [f"{bench_pose.PoseConfig().pair_key()}.json"]
     assert found == [[], ours_pairs, [], ours_pairs]  # the flow-check variant changes the pairs: its own cache
+
+
+def _measured(sequence: str, method: str, ate_mm: float, *, synthetic: bool = True, width: int = 320,
+              rot: float = 0.02, pairs=(1.0, 1.0, 2.0), seconds: float | None = 1.0):
+    return bench_pose.Measured(sequence, method, synthetic, width, ate_mm, ate_mm, 1.0, rot, 0.001,
+                               np.array(pairs), seconds, "-")
+
+
+def test_the_target_report_counts_each_target_and_names_the_misses():
+    measured = [
+        _measured("a", "ours", 1.0),
+        _measured("a", "O3D hybrid", 4.0),
+        _measured("a", "DIS RANSAC", 2.5),  # the best peer: 1.0 is not at most 2.5 / 3
+        _measured("b", "ours", 6.0, pairs=(1.0, 1.0, 3.5), rot=0.12),
+        _measured("b", "O3D ICP", 30.0),
+        _measured("c", "ours", 9.0, synthetic=False, width=640, seconds=2.4),
+        _measured("c", "ours no graph", 1.0, width=640, seconds=0.1),  # not ours: never counted
+    ]
+    lines = bench_pose.target_report(measured)
+    assert lines == [
+        "- ATE at most 1/3 of the best peer's: met on 1 of 2; missed: a (1.0 mm against DIS RANSAC's 2.5)",
+        "- ATE at most 5 mm on synthetic sequences: met on 1 of 2; missed: b (6.0 mm)",
+        "- RPE rotation under 0.1 deg: met on 2 of 3; missed: b (0.120 deg)",
+        "- no pair error above 3x the median: met on 2 of 3; missed: b (3.5 mm, 3.5x 1.0)",
+        "- at most 2 s per pair at 640x480: met on 0 of 1; missed: c (2.40 s)",
+    ]
+
+
+def test_the_target_report_says_when_no_sequence_applies():
+    lines = bench_pose.target_report([_measured("a", "ours", 1.0, seconds=None)])
+    assert lines[0] == "- ATE at most 1/3 of the best peer's: no sequence of this run applies"
+    assert lines[-1] == "- at most 2 s per pair at 640x480: no sequence of this run applies"
+    assert "met on 1 of 1" in lines[1]
+
+
+def test_a_table_row_prints_the_measured_figures():
+    line = bench_pose.row(_measured("a", "ours", 1.234, pairs=(0.5, 1.5, 4.0), seconds=None))
+    assert line == "| a | ours | 1.2 | 1.2 | 1.0 | 0.020 | 0.001 | 1.5 / 3.5 / 4.0 | - | - |"
