@@ -39,10 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
+from taichi_gs.evaluate import psnr, ssim
 from taichi_gs.icp import align, depth_cloud, prepare_icp
 from taichi_gs.io.sequence import Sequence, load_sequence, read_color
 from taichi_gs.io.trajectory import read_tum, write_tum
-from taichi_gs.evaluate import psnr, ssim
 from taichi_gs.noreference import gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from taichi_gs.plots import image_grid
 from taichi_gs.stages.pose import PoseConfig
@@ -144,7 +144,8 @@ def score(run: Path, merged: Sequence, test: list[int]) -> dict[str, float]:
     """The module's figures for one arm's run, means over the references; writes RUN/sharp_reference.png
     (reference | sharp render | floor, for the first ``GRID_VIEWS`` references)."""
     _, poses = read_tum(run / "deblur" / "trajectory.txt")
-    stretch = [i for i in range(len(merged)) if i not in set(test)]
+    held = set(test)
+    stretch = [i for i in range(len(merged)) if i not in held]
     K = merged.intrinsics.K()
     figures: dict[str, list[float]] = {}
     grid_rows = []
@@ -204,9 +205,9 @@ def main() -> None:
     _, stretch_poses = read_tum(stage1 / "pose" / "trajectory.txt")
     placed, lines = place_references(stretch, references, stretch_poses)
     print(*lines, sep="\n")
-    poses = np.empty((len(merged), 4, 4))
+    poses, held = np.empty((len(merged), 4, 4)), set(test)
     poses[test] = placed
-    poses[[i for i in range(len(merged)) if i not in set(test)]] = stretch_poses
+    poses[[i for i in range(len(merged)) if i not in held]] = stretch_poses
     trajectory = args.out / "merged_trajectory.txt"
     write_tum(trajectory, merged.timestamps, poses, header="stage 1 on the stretch; references placed by depth ICP")
     print("\n| arm | render vs reference PSNR / SSIM | on the floor's pixels: render / floor PSNR (SSIM) | floor coverage "
