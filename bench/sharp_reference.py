@@ -10,7 +10,7 @@ photograph with little motion blur rather than against another blurred frame:
 
 1. ``taichi-gs import`` reads the stretch and the references (``first:count`` of the recording's frames) into
    DIR/stretch and DIR/references; both need reference poses (groundtruth).
-2. DIR/merged holds both, the references at positions 1, 1 + h, 2 + 2h, ... (``--holdout h`` = count of the
+2. DIR/merged holds both, the references at positions 1, 1 + h, 1 + 2h, ... (``--holdout h`` = count of the
    stretch / count of the references + 1), the test views of ``taichi-gs deblur --holdout h``.
 3. Stage 1 runs on the stretch alone. Each reference is placed relative to the stretch frame whose reference pose
    is closest in rotation: the reference poses' relative transform, refined by stage 1's point-to-plane ICP on the
@@ -39,21 +39,22 @@ from pathlib import Path
 
 import numpy as np
 
-from taichi_gs.evaluate import psnr, ssim
-from taichi_gs.icp import align, depth_cloud, prepare_icp
+from taichi_gs.evaluate import psnr, rotation_angle_deg, ssim
+from taichi_gs.icp import align, depth_cloud
 from taichi_gs.io.sequence import Sequence, load_sequence, read_color
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.noreference import gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from taichi_gs.plots import image_grid
-from taichi_gs.stages.pose import PoseConfig
+from taichi_gs.stages.pose import PoseConfig, icp_levels
 
 FLOOR_NEIGHBOURS = 2  # stretch frames nearest in view that the floor warps into each reference
 GRID_VIEWS = 4  # references shown in each arm's image grid
 
 
 def taichi_gs(*args: str) -> None:
-    """Run the CLI of this environment; stop with its output on failure."""
-    command = [str(Path(sys.executable).with_name("taichi-gs")), *args]
+    """Run the CLI of this code tree (``python -m taichi_gs.cli``, as the other bench scripts do); stop with its
+    output on failure."""
+    command = [sys.executable, "-m", "taichi_gs.cli", *args]
     done = subprocess.run(command, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"{shlex.join(command)} failed ({done.returncode}):\n"
@@ -71,46 +72,38 @@ def held_out_positions(n_frames: int, every: int) -> list[int]:
     return list(range(1, n_frames, every))
 
 
-def merge(stretch: Path, references: Path, out: Path, every: int) -> list[int]:
-    """One taichi-gs sequence of both imports, the references at :func:`held_out_positions`; frames are renamed by
-    position and stamped 1/30 s apart (their order is the merged one). Returns the test positions."""
-    def rows(folder: Path, name: str) -> list[list[str]]:
-        return [line.split() for line in (folder / name).read_text().splitlines() if line and not line.startswith("#")]
-
-    frames = {"stretch": rows(stretch, "frames.txt"), "references": rows(references, "frames.txt")}
-    truth = {key: {r[0]: r[1:] for r in rows(folder, "groundtruth.txt")}
-             for key, folder in (("stretch", stretch), ("references", references))}
-    n = len(frames["stretch"]) + len(frames["references"])
+def merge(stretch: Sequence, references: Sequence, out: Path, every: int) -> list[int]:
+    """One taichi-gs sequence of both (imported, own-layout) sequences, the references at
+    :func:`held_out_positions`; frames are renamed by position and stamped 1/30 s apart (their order is the merged
+    one), each with its own reference pose. Returns the test positions."""
+    n = len(stretch) + len(references)
     test = held_out_positions(n, every)
-    if len(test) != len(frames["references"]):
-        raise SystemExit(f"{len(frames['references'])} references do not fill the {len(test)} test views of "
+    if len(test) != len(references):
+        raise SystemExit(f"{len(references)} references do not fill the {len(test)} test views of "
                          f"--holdout {every} on {n} frames")
     (out / "rgb").mkdir(parents=True)
     (out / "depth").mkdir()
     for name in ("intrinsics.json", "sourced.png"):
-        if (stretch / name).is_file():
-            shutil.copy(stretch / name, out)
-    listing, poses = ["# timestamp rgb depth"], ["# timestamp tx ty tz qx qy qz qw"]
-    sources = {"stretch": iter(frames["stretch"]), "references": iter(frames["references"])}
-    start = float(frames["stretch"][0][0])
-    for position in range(n):
-        key = "references" if position in test else "stretch"
-        folder = references if key == "references" else stretch
-        stamp, rgb, depth = next(sources[key])
-        shutil.copy(folder / rgb, out / "rgb" / f"{position:04d}.png")
-        shutil.copy(folder / depth, out / "depth" / f"{position:04d}.png")
-        new_stamp = f"{start + position / 30.0:.6f}"
-        listing.append(f"{new_stamp} rgb/{position:04d}.png depth/{position:04d}.png")
-        poses.append(" ".join([new_stamp, *truth[key][stamp]]))
+        if (stretch.root / name).is_file():
+            shutil.copy(stretch.root / name, out)
+    held = set(test)
+    order = iter(range(len(stretch))), iter(range(len(references)))
+    stamps = stretch.timestamps[0] + np.arange(n) / 30.0
+    listing, poses = ["# timestamp rgb depth"], []
+    for position, stamp in enumerate(stamps):
+        source, i = (references, next(order[1])) if position in held else (stretch, next(order[0]))
+        shutil.copy(source.rgb_paths[i], out / "rgb" / f"{position:04d}.png")
+        shutil.copy(source.depth_paths[i], out / "depth" / f"{position:04d}.png")
+        listing.append(f"{stamp:.6f} rgb/{position:04d}.png depth/{position:04d}.png")
+        poses.append(source.gt_poses[i])
     (out / "frames.txt").write_text("\n".join(listing) + "\n")
-    (out / "groundtruth.txt").write_text("\n".join(poses) + "\n")
+    write_tum(out / "groundtruth.txt", stamps, np.array(poses))
     return test
 
 
 def rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Angle (deg) of the rotation between two camera-to-world poses."""
-    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return rotation_angle_deg(a[:3, :3].T @ b[:3, :3])
 
 
 def place_references(stretch: Sequence, references: Sequence,
@@ -127,10 +120,7 @@ def place_references(stretch: Sequence, references: Sequence,
     for r in range(len(references)):
         j = min(range(len(stretch)), key=lambda j: rotation_deg(stretch.gt_poses[j], references.gt_poses[r]))
         start = np.linalg.inv(stretch.gt_poses[j]) @ references.gt_poses[r]  # reference camera -> camera j
-        levels = prepare_icp(cloud(references, r), cloud(stretch, j),
-                             tuple(s * config.icp_voxel_m for s in config.icp_scales), config.icp_iterations, config.icp_distance_factor, config.icp_normal_radius_factor,
-                             config.icp_normal_max_nn, config.icp_max_points)
-        result = align(levels, start)
+        result = align(icp_levels(cloud(references, r), cloud(stretch, j), config), start)
         placed.append(stretch_poses[j] @ result.transform)
         lines.append(f"- reference {references.names[r]}: from stretch frame {stretch.names[j]} "
                      f"({rotation_deg(stretch.gt_poses[j], references.gt_poses[r]):.1f} deg apart); ICP fitness "
@@ -156,16 +146,15 @@ def score(run: Path, merged: Sequence, test: list[int]) -> dict[str, float]:
         floor = max((warp_to_view(merged.color(j), poses[j], merged.depth(i), poses[i], K) for j in nearest),
                     key=lambda warp: masked_psnr(warp[0], reference, warp[1]) if warp[1].any() else -np.inf)
         warped, mask = floor
+        reference_energy = max(gradient_energy(reference, mask=mask), 1e-12)
         values = {"render_psnr_db": psnr(render, reference), "render_ssim": ssim(render, reference),
                   "render_on_floor_pixels_psnr_db": masked_psnr(render, reference, mask),
                   "render_on_floor_pixels_ssim": masked_ssim(render, reference, mask),
                   "floor_psnr_db": masked_psnr(warped, reference, mask),
                   "floor_ssim": masked_ssim(warped, reference, mask),
                   "floor_coverage": float(mask.mean()),
-                  "gradient_energy_render_over_reference": gradient_energy(render, mask=mask)
-                  / max(gradient_energy(reference, mask=mask), 1e-12),
-                  "gradient_energy_floor_over_reference": gradient_energy(warped, mask=mask)
-                  / max(gradient_energy(reference, mask=mask), 1e-12)}
+                  "gradient_energy_render_over_reference": gradient_energy(render, mask=mask) / reference_energy,
+                  "gradient_energy_floor_over_reference": gradient_energy(warped, mask=mask) / reference_energy}
         for key, value in values.items():
             figures.setdefault(key, []).append(float(value))
         if len(grid_rows) < GRID_VIEWS:
@@ -196,7 +185,7 @@ def main() -> None:
     stretch, references = load_sequence(args.out / "stretch"), load_sequence(args.out / "references")
     every = len(stretch) // len(references) + 1
     merged_dir = args.out / "merged"
-    test = (merge(args.out / "stretch", args.out / "references", merged_dir, every) if not merged_dir.is_dir()
+    test = (merge(stretch, references, merged_dir, every) if not merged_dir.is_dir()
             else held_out_positions(len(stretch) + len(references), every))
     merged = load_sequence(merged_dir)
     stage1 = args.out / "stage1"

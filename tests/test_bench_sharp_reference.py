@@ -25,7 +25,7 @@ def _clip(folder: Path, frames: int, seed: int, size: tuple[int, int] = (64, 48)
 
 def test_the_merged_sequence_puts_the_references_on_the_test_views(tmp_path):
     stretch, references = _clip(tmp_path / "stretch", 6, 1), _clip(tmp_path / "references", 2, 2)
-    test = merge(stretch, references, tmp_path / "merged", every=4)
+    test = merge(load_sequence(stretch), load_sequence(references), tmp_path / "merged", every=4)
     assert test == held_out_positions(8, 4) == [1, 5]
     merged, a, b = (load_sequence(tmp_path / name) for name in ("merged", "stretch", "references"))
     assert len(merged) == 8 and np.all(np.diff(merged.timestamps) > 0)
@@ -39,7 +39,7 @@ def test_the_merged_sequence_puts_the_references_on_the_test_views(tmp_path):
 def test_references_that_do_not_fill_the_test_views_are_refused(tmp_path):
     stretch, references = _clip(tmp_path / "stretch", 6, 1), _clip(tmp_path / "references", 2, 2)
     try:
-        merge(stretch, references, tmp_path / "merged", every=3)  # 8 frames: test views 1, 4, 7
+        merge(load_sequence(stretch), load_sequence(references), tmp_path / "merged", every=3)  # views 1, 4, 7
     except SystemExit as error:
         assert "do not fill the 3 test views" in str(error)
     else:

@@ -446,8 +446,8 @@ def start_pair(color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, d
             ahead.flow_check = _flow_check(flow, backward_flow)
         if config.use_icp:
             target_mask = config.reliable_depth(depth_t1)
-            ahead.levels = _prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask),
-                                        config)
+            ahead.levels = icp_levels(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask),
+                                      config)
         if flow_T is not None:
             ahead.candidates[FROM_FLOW] = Candidate(flow_T)
             if config.joint_solve:
@@ -625,8 +625,9 @@ def _choose(candidates: dict[str, Candidate], views: tuple[FrameView, FrameView]
     return result
 
 
-def _prepare_icp(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, config: PoseConfig) -> ICPLevels:
-    """The config's ICP pyramid of the two clouds, shared by every start that is aligned on them."""
+def icp_levels(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud, config: PoseConfig) -> ICPLevels:
+    """The config's ICP pyramid of the two clouds (``icp.prepare_icp`` with stage 1's ICP settings), shared by
+    every start that is aligned on them."""
     return prepare_icp(
         source, target, voxel_sizes=tuple(s * config.icp_voxel_m for s in config.icp_scales),
         iterations=tuple(config.icp_iterations), distance_factor=config.icp_distance_factor,
@@ -682,7 +683,7 @@ def _refine_with_icp(result: RelativePose, depth_t: np.ndarray, depth_t1: np.nda
                      source_mask: np.ndarray, config: PoseConfig) -> None:
     """Replace the flow estimate by point-to-plane ICP unless ICP fits poorly or jumps away from it."""
     target_mask = config.reliable_depth(depth_t1)
-    icp = align(_prepare_icp(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config),
+    icp = align(icp_levels(depth_cloud(depth_t, K, source_mask), depth_cloud(depth_t1, K, target_mask), config),
                 result.transform)
     result.icp_fitness, result.icp_inlier_rmse_m, result.icp_transform = icp.fitness, icp.inlier_rmse, icp.transform
     jump = se3_log(icp.transform @ invert(result.transform))
@@ -957,7 +958,7 @@ def _graph_edge(frames: FrameCache, i: int, j: int, poses: np.ndarray, K: np.nda
     if config.graph_icp:
         mask_i = config.reliable_depth(depth_i)
         mask_j = config.reliable_depth(depth_j)
-        icp = align(_prepare_icp(depth_cloud(depth_i, K, mask_i), depth_cloud(depth_j, K, mask_j), config), init)
+        icp = align(icp_levels(depth_cloud(depth_i, K, mask_i), depth_cloud(depth_j, K, mask_j), config), init)
         if np.all(np.isfinite(icp.transform)):
             candidates["icp-chain"] = Candidate(icp.transform, icp.fitness, icp.inlier_rmse)
     for name in list(candidates):
