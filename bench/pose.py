@@ -3,6 +3,7 @@
     python bench/pose.py [--frames 60] [--size 320x240] [--trajectories handheld,turn,translation]
                          [--scenes room,office,plain,corridor] [--seeds 0,1,2] [--real-every 1,2,3] [--real-scale 0.5] [--methods ...] [--out DIR]
     python bench/pose.py --sequence FOLDER [--sequence FOLDER ...]   # any folders with ground truth
+                         [--first N] [--every N] [--camera C] [--scale S]   # how every --sequence folder is read
 
 Sequences: ``taichi_gs.synth`` (extreme blur) for every scene kind, trajectory kind and seed, and the 7-Scenes
 RedKitchen slice of ../shared/data at every 1st, 2nd, 3rd frame, read as shipped (``--camera shipped``:
@@ -32,6 +33,8 @@ an earlier method computed on the sequence: its seconds per pair are those pairs
 
 Prints one Markdown row per sequence and method: ATE, ATE between reference breaks, RPE translation and rotation
 (RMSE), RPE rotation drift (the norm of the pairs' mean rotation error: the systematic part, which accumulates),
+rotation scale (``taichi_gs.evaluate.rotation_scale``: how much of the reference's turning over spans of 10 frames
+the method turns; when every method reads the same shortfall, the reference or the camera model is the suspect),
 per-pair translation error p50 / p90 / max (mm), weak pairs, pruned graph edges, seconds per pair (wall).
 A reference break is a pair whose ground-truth relative pose scores (stage 1's verification, the same for every
 method) above ``--break-ratio`` x the sequence's median: 7-Scenes' reference jumps 36 mm between frames 121 and 122,
@@ -278,6 +281,7 @@ class Measured:
     rpe_trans_mm: float
     rpe_rot_deg: float
     rpe_rot_drift_deg: float
+    rotation_scale: float
     pair_errors_mm: np.ndarray
     seconds: float | None
     extra: str
@@ -288,7 +292,8 @@ def measure(name: str, method: str, poses: np.ndarray, gt: np.ndarray, breaks: l
     """``poses`` against the reference ``gt``: ATE (also between reference ``breaks``), RPE, pair errors."""
     t = trajectory_errors(poses, gt)
     return Measured(name, method, synthetic, width, 1000 * t.ate_m, 1000 * segment_ate(poses, gt, breaks),
-                    1000 * t.rpe_trans_m, t.rpe_rot_deg, t.rpe_rot_drift_deg, pair_errors_mm(poses, gt), seconds, extra)
+                    1000 * t.rpe_trans_m, t.rpe_rot_deg, t.rpe_rot_drift_deg, t.rotation_scale, pair_errors_mm(poses, gt),
+                    seconds, extra)
 
 
 def row(m: Measured) -> str:
@@ -296,7 +301,7 @@ def row(m: Measured) -> str:
     e = m.pair_errors_mm
     s = "-" if m.seconds is None else f"{m.seconds:.2f}"
     return (f"| {m.sequence} | {m.method} | {m.ate_mm:.1f} | {m.segment_ate_mm:.1f} | {m.rpe_trans_mm:.1f} | "
-            f"{m.rpe_rot_deg:.3f} | {m.rpe_rot_drift_deg:.3f} | "
+            f"{m.rpe_rot_deg:.3f} | {m.rpe_rot_drift_deg:.3f} | {m.rotation_scale:.3f} | "
             f"{np.median(e):.1f} / {np.percentile(e, 90):.1f} / {e.max():.1f} | {m.extra} | {s} |")
 
 
@@ -358,6 +363,10 @@ def main() -> None:
     parser.add_argument("--real-scale", type=float, default=0.5)
     parser.add_argument("--methods", default=",".join([*OURS, *DERIVED, "O3D hybrid", "O3D ICP", "O3D dense SLAM", "DIS RANSAC"]))
     parser.add_argument("--sequence", type=Path, action="append", help="benchmark these folders instead")
+    parser.add_argument("--first", type=int, default=0, help="--sequence folders: start at this frame")
+    parser.add_argument("--every", type=int, default=1, help="--sequence folders: keep every N-th frame")
+    parser.add_argument("--camera", default=None, help="--sequence folders: the reader's --camera (TUM: fr1 ...)")
+    parser.add_argument("--scale", type=float, default=1.0, help="--sequence folders: read at S times their size")
     parser.add_argument("--out", type=Path, default=None, help="keep sequences and outputs here")
     parser.add_argument("--gt-check-ratio", type=float, default=2.0,
                         help="list pairs whose ground truth scores above this x ours' (0: no check)")
@@ -367,8 +376,8 @@ def main() -> None:
     methods = args.methods.split(",")
     root = args.out or Path(tempfile.mkdtemp(prefix="bench_pose_"))
     print("| sequence | method | ATE (mm) | ATE between reference breaks (mm) | RPE trans (mm) | RPE rot (deg) | "
-          "RPE rot drift (deg/pair) | pair err p50 / p90 / max (mm) | weak / pruned | s/pair |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "RPE rot drift (deg/pair) | rotation scale | pair err p50 / p90 / max (mm) | weak / pruned | s/pair |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     suspects, break_lines, measured = [], [], []
     for name, sequence, synthetic in sequences(args, root):
         gt = sequence.gt_poses
@@ -416,12 +425,22 @@ def slug(label: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in label)
 
 
+def sequence_label(folder: Path, args) -> str:
+    """A ``--sequence`` folder's row name: its folder name, and how it was read where that is not as stored."""
+    read = [f"from {args.first}" if args.first else "", f"every {args.every}" if args.every > 1 else "",
+            f"x{args.scale:g}" if args.scale != 1.0 else ""]
+    return " ".join([folder.name, *filter(None, read)])
+
+
 def sequences(args, root: Path):
-    """(name, sequence, synthetic) of the given folders, or of the synthetic and 7-Scenes grid; a folder is
+    """(name, sequence, synthetic) of the given folders (read from ``--first``, every ``--every``-th frame,
+    ``--frames`` of them, with ``--camera`` at ``--scale``), or of the synthetic and 7-Scenes grid; a folder is
     synthetic when ``taichi-gs synth`` made it (its synth.json)."""
     if args.sequence:
         for folder in args.sequence:
-            yield folder.name, load_sequence(folder, count=args.frames), (folder / "synth.json").is_file()
+            sequence = load_sequence(folder, camera=args.camera, first=args.first, every=args.every,
+                                     count=args.frames, scale=args.scale)
+            yield sequence_label(folder, args), sequence, (folder / "synth.json").is_file()
         return
     from taichi_gs.synth import SynthConfig, generate
 

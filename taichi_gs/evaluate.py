@@ -8,6 +8,12 @@
 - [ours] RPE rotation drift: the norm of the *mean* of the same pairs' rotation errors as vectors (log of R(E)),
   in degrees per pair: the systematic part of the RPE rotation, which accumulates along the trajectory, where
   zero-mean noise averages out (a trajectory turned 0.03 deg too little at every pair drifts 0.03 deg/pair).
+- [ours] Rotation scale: how much of the reference's turning the estimate turns. For every span of
+  ``ROTATION_SCALE_SPAN`` frames, the estimate's rotation over the span (log of P_i^-1 P_{i+span}) projected on
+  the axis of the reference's (log of Q_i^-1 Q_{i+span}); the sum of those over the sum of the reference's angles.
+  1: turns as much; 0.9: turns 10% too little at every span, long and short (as a focal length 10% long, or a
+  reference that over-turns, makes it); noise averages out. Spans the reference turns less than
+  ``ROTATION_SCALE_MIN_DEG`` through are left out.
 - PSNR, SSIM (Gaussian window sigma 1.5, data range 1, as the 3DGS papers compute it), and RMSE of
   inverse depth (1/m) over pixels where both depths are valid.
 """
@@ -22,6 +28,8 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from .geometry import invert, so3_log
 
 EVO_MAX_TIME_DIFFERENCE = 0.01  # seconds, evo's default for associating trajectories
+ROTATION_SCALE_SPAN = 10  # frames per span of the rotation scale (module docstring)
+ROTATION_SCALE_MIN_DEG = 0.5  # spans the reference turns less than this through carry no axis to project on
 
 
 @dataclass(frozen=True)
@@ -33,10 +41,12 @@ class TrajectoryErrors:
     rpe_rot_deg: float
     frames: int
     rpe_rot_drift_deg: float = float("nan")  # [ours] degrees per pair, see the module docstring
+    rotation_scale: float = float("nan")  # [ours] the estimate's turning over the reference's, see the docstring
 
     def as_dict(self) -> dict[str, float | int]:
         return {"ate_m": self.ate_m, "rpe_trans_m": self.rpe_trans_m, "rpe_rot_deg": self.rpe_rot_deg,
-                "rpe_rot_drift_deg": self.rpe_rot_drift_deg, "frames": self.frames}
+                "rpe_rot_drift_deg": self.rpe_rot_drift_deg, "rotation_scale": self.rotation_scale,
+                "frames": self.frames}
 
 
 def umeyama_alignment(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,6 +116,25 @@ def rotation_drift_deg(est: np.ndarray, ref: np.ndarray) -> float:
     return _drift_of(_pair_errors(est, ref))
 
 
+def rotation_scale(est: np.ndarray, ref: np.ndarray, span: int = ROTATION_SCALE_SPAN,
+                   min_deg: float = ROTATION_SCALE_MIN_DEG) -> float:
+    """[ours] How much of the reference's turning the estimate turns over spans of ``span`` frames (the module
+    docstring): 1 when it turns as much, below 1 when it turns too little. NaN without a span that the
+    reference turns ``min_deg`` or more through with all four poses finite."""
+    turned = reference = 0.0
+    for i in range(len(est) - span):
+        poses = (est[i], est[i + span], ref[i], ref[i + span])
+        if not all(np.all(np.isfinite(T)) for T in poses):
+            continue
+        axis_angle = so3_log((invert(ref[i]) @ ref[i + span])[:3, :3])
+        angle = float(np.linalg.norm(axis_angle))
+        if np.degrees(angle) < min_deg:
+            continue
+        turned += float(so3_log((invert(est[i]) @ est[i + span])[:3, :3]) @ axis_angle) / angle
+        reference += angle
+    return turned / reference if reference > 0 else float("nan")
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Rotation angle of a rotation matrix in degrees."""
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
@@ -118,7 +147,7 @@ def trajectory_errors(est: np.ndarray, ref: np.ndarray) -> TrajectoryErrors:
     errors = _pair_errors(est, ref)  # once for the RPE and the drift
     trans, rot = _rmse_of(errors)
     frames = len(_finite_pairs(est, ref)[0])
-    return TrajectoryErrors(ate(est, ref), trans, rot, frames, _drift_of(errors))
+    return TrajectoryErrors(ate(est, ref), trans, rot, frames, _drift_of(errors), rotation_scale(est, ref))
 
 
 def match_by_time(t_est: np.ndarray, t_ref: np.ndarray, max_difference: float = EVO_MAX_TIME_DIFFERENCE) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,8 @@ import numpy as np
 
 from . import __version__
 from .errors import InputError
-from .evaluate import align_trajectory, inverse_depth_rmse, match_by_time, psnr, ssim, trajectory_errors
+from .evaluate import (ROTATION_SCALE_MIN_DEG, ROTATION_SCALE_SPAN, align_trajectory, inverse_depth_rmse,
+                       match_by_time, psnr, ssim, trajectory_errors)
 from .io.jsonout import finite_or_null, write_json
 from .io.sequence import Sequence, read_color, read_depth
 from .io.trajectory import read_tum
@@ -86,7 +87,9 @@ def trajectory_record(est: np.ndarray, ref: np.ndarray, dropped: list[dict[str, 
     reasons = {"ate_m": f"{few}; ATE needs at least 3",
                "rpe_trans_m": f"{few}; RPE needs two consecutive such frames",
                "rpe_rot_deg": f"{few}; RPE needs two consecutive such frames",
-               "rpe_rot_drift_deg": f"{few}; RPE needs two consecutive such frames"}
+               "rpe_rot_drift_deg": f"{few}; RPE needs two consecutive such frames",
+               "rotation_scale": f"{few}, or the reference turns less than {ROTATION_SCALE_MIN_DEG:g} deg over every "
+                                 f"{ROTATION_SCALE_SPAN} frames"}
     record = finite_or_null(errors, reasons)
     record["dropped_frames"] = dropped or []
     return record
@@ -115,12 +118,13 @@ def format_metrics(metrics: dict[str, Any]) -> str:
     memory per stage, warnings."""
 
     lines = ["trajectory (after rigid alignment)",
-             f"  {'stage':8s} {'ATE mm':>9s} {'RPE mm':>9s} {'RPE deg':>9s} {'drift deg':>9s} {'frames':>7s}  dropped"]
+             f"  {'stage':8s} {'ATE mm':>9s} {'RPE mm':>9s} {'RPE deg':>9s} {'drift deg':>9s} {'rot scale':>9s} "
+             f"{'frames':>7s}  dropped"]
     for stage, t in metrics["trajectory"].items():
         dropped = sum(d["count"] for d in t.get("dropped_frames", []))
         lines.append(f"  {stage:8s} {_number(t['ate_m'], 1000):>9s} {_number(t['rpe_trans_m'], 1000):>9s} "
                      f"{_number(t['rpe_rot_deg'], 1, 3):>9s} {_number(t.get('rpe_rot_drift_deg'), 1, 3):>9s} "
-                     f"{t['frames']:>7d}  {dropped}")
+                     f"{_number(t.get('rotation_scale'), 1, 3):>9s} {t['frames']:>7d}  {dropped}")
     images = metrics.get("images")
     if images:
         lines += _split_table(f"images (stage 3 renders vs {images['ground_truth']})", images, [

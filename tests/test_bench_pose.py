@@ -81,7 +81,7 @@ def test_a_variant_that_changes_only_the_graph_starts_from_the_earlier_pairs(tmp
 
 def _measured(sequence: str, method: str, ate_mm: float, *, synthetic: bool = True, width: int = 320,
               rot: float = 0.02, pairs=(1.0, 1.0, 2.0), seconds: float | None = 1.0):
-    return bench_pose.Measured(sequence, method, synthetic, width, ate_mm, ate_mm, 1.0, rot, 0.001,
+    return bench_pose.Measured(sequence, method, synthetic, width, ate_mm, ate_mm, 1.0, rot, 0.001, 0.97,
                                np.array(pairs), seconds, "-")
 
 
@@ -114,4 +114,20 @@ def test_the_target_report_says_when_no_sequence_applies():
 
 def test_a_table_row_prints_the_measured_figures():
     line = bench_pose.row(_measured("a", "ours", 1.234, pairs=(0.5, 1.5, 4.0), seconds=None))
-    assert line == "| a | ours | 1.2 | 1.2 | 1.0 | 0.020 | 0.001 | 1.5 / 3.5 / 4.0 | - | - |"
+    assert line == "| a | ours | 1.2 | 1.2 | 1.0 | 0.020 | 0.001 | 0.970 | 1.5 / 3.5 / 4.0 | - | - |"
+
+
+def test_sequence_folders_are_read_as_the_options_say(tmp_path):
+    write_7scenes(tmp_path / "kitchen")  # three frames
+    whole = load_sequence(tmp_path / "kitchen", camera="shipped")
+    for first, every, frames, label in ((1, 1, 2, "kitchen from 1 x0.5"), (0, 2, 0, "kitchen every 2 x0.5")):
+        args = SimpleNamespace(sequence=[tmp_path / "kitchen"], first=first, every=every, camera="shipped", scale=0.5,
+                               frames=frames)
+        [(name, sequence, synthetic)] = list(bench_pose.sequences(args, tmp_path))
+        kept = [first, first + every]
+        assert name == label and not synthetic
+        assert sequence.names == [whole.names[i] for i in kept]
+        assert (sequence.intrinsics.width, sequence.intrinsics.height) == (40, 30)
+        assert np.allclose(sequence.gt_poses, whole.gt_poses[kept])
+    plain = SimpleNamespace(sequence=[tmp_path / "kitchen"], first=0, every=1, camera=None, scale=1.0, frames=0)
+    assert [name for name, _, _ in bench_pose.sequences(plain, tmp_path)] == ["kitchen"]

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from taichi_gs import geometry as g
-from taichi_gs.evaluate import (ate, inverse_depth_rmse, match_by_time, psnr, rotation_drift_deg, rpe, ssim,
-                                trajectory_errors)
+from taichi_gs.evaluate import (ate, inverse_depth_rmse, match_by_time, psnr, rotation_drift_deg, rotation_scale, rpe,
+                                ssim, trajectory_errors)
 from taichi_gs.io.trajectory import write_tum
 
 
@@ -64,6 +64,44 @@ def test_rotation_drift_is_the_systematic_part_of_the_rpe_rotation():
     assert rpe(alternating, gt)[1] == pytest.approx(0.03, abs=1e-9)
     assert trajectory_errors(steady, gt).as_dict()["rpe_rot_drift_deg"] == pytest.approx(0.03, abs=1e-9)
     assert np.isnan(rotation_drift_deg(steady[:1], gt[:1]))
+
+
+def turning_steps(n=40, seed=1):
+    """se(3) steps of a camera that pans about 1.5 deg per frame (its axis wobbling) while it moves."""
+    rng = np.random.default_rng(seed)
+    return [np.r_[rng.normal(size=3) * 0.01, np.radians(1.5) * (np.array([0.1, 1.0, 0.2]) + rng.normal(size=3) * 0.2)]
+            for _ in range(n - 1)]
+
+
+def chained_steps(steps, rotation_factor=1.0):
+    """Poses from identity through ``steps``, each step's rotation times ``rotation_factor``."""
+    poses = [np.eye(4)]
+    for step in steps:
+        poses.append(poses[-1] @ g.se3_exp(np.r_[step[:3], rotation_factor * step[3:]]))
+    return np.stack(poses)
+
+
+def test_rotation_scale_reads_how_much_of_the_reference_turn_the_estimate_turns():
+    steps = turning_steps()
+    gt = chained_steps(steps)
+    assert rotation_scale(gt, gt) == pytest.approx(1.0, abs=1e-12)
+    # every relative rotation 10% short, in another world frame: 0.9 at every span
+    short = g.se3_exp([1, 2, 3, 0.3, 0.2, 0.1]) @ chained_steps(steps, 0.9)
+    assert rotation_scale(short, gt) == pytest.approx(0.9, abs=0.005)
+    assert rotation_scale(short, gt, span=1) == pytest.approx(0.9, abs=0.005)
+    # zero-mean noise on every pose does not move it; a turn the wrong way reads negative
+    rng = np.random.default_rng(3)
+    noisy = np.stack([T @ g.se3_exp(np.r_[0, 0, 0, rng.normal(size=3) * np.radians(0.3)]) for T in gt])
+    assert rotation_scale(noisy, gt) == pytest.approx(1.0, abs=0.02)
+    backwards = chained_steps([np.r_[s[:3], -s[3:]] for s in steps])
+    assert rotation_scale(backwards, gt) == pytest.approx(-1.0, abs=0.01)
+    # spans without turning carry no axis; frames without a reference are skipped
+    still = np.stack([g.se3_exp([0.01 * i, 0, 0, 0, 0, 0]) for i in range(20)])
+    assert np.isnan(rotation_scale(still, still))
+    gt_nan = gt.copy()
+    gt_nan[5] = np.nan
+    assert rotation_scale(short, gt_nan) == pytest.approx(0.9, abs=0.005)
+    assert trajectory_errors(short, gt).as_dict()["rotation_scale"] == pytest.approx(rotation_scale(short, gt))
 
 
 def test_nan_reference_frames_are_skipped():
