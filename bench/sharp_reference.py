@@ -30,7 +30,6 @@ recording is read, never written.
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import shutil
 import subprocess
@@ -41,6 +40,7 @@ import numpy as np
 
 from taichi_gs.evaluate import psnr, rotation_angle_deg, ssim
 from taichi_gs.icp import align, depth_cloud
+from taichi_gs.io.jsonout import write_json
 from taichi_gs.io.sequence import Sequence, load_sequence, read_color
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.noreference import gradient_energy, masked_psnr, masked_ssim, warp_to_view
@@ -213,7 +213,7 @@ def main() -> None:
             shutil.copytree(base, run, ignore=shutil.ignore_patterns("deblur"))
             taichi_gs("deblur", str(run), "--holdout", str(every), *shlex.split(extra))
         f = score(run, merged, test)
-        (run / "sharp_reference.json").write_text(json.dumps(f, indent=2))
+        write_json(run / "sharp_reference.json", f)  # strict JSON: a figure without pixels becomes null
         print(f"| {name} | {f['render_psnr_db']:.2f} / {f['render_ssim']:.3f} | {f['render_on_floor_pixels_psnr_db']:.2f} "
               f"/ {f['floor_psnr_db']:.2f} ({f['render_on_floor_pixels_ssim']:.3f} / {f['floor_ssim']:.3f}) | "
               f"{f['floor_coverage']:.2f} | {f['gradient_energy_render_over_reference']:.2f} "

@@ -126,11 +126,11 @@ def rotation_scale(est: np.ndarray, ref: np.ndarray, span: int = ROTATION_SCALE_
         poses = (est[i], est[i + span], ref[i], ref[i + span])
         if not all(np.all(np.isfinite(T)) for T in poses):
             continue
-        axis_angle = so3_log((invert(ref[i]) @ ref[i + span])[:3, :3])
+        axis_angle = so3_log(ref[i][:3, :3].T @ ref[i + span][:3, :3])
         angle = float(np.linalg.norm(axis_angle))
         if np.degrees(angle) < min_deg:
             continue
-        turned += float(so3_log((invert(est[i]) @ est[i + span])[:3, :3]) @ axis_angle) / angle
+        turned += float(so3_log(est[i][:3, :3].T @ est[i + span][:3, :3]) @ axis_angle) / angle
         reference += angle
     return turned / reference if reference > 0 else float("nan")
 

@@ -88,8 +88,10 @@ def trajectory_record(est: np.ndarray, ref: np.ndarray, dropped: list[dict[str, 
                "rpe_trans_m": f"{few}; RPE needs two consecutive such frames",
                "rpe_rot_deg": f"{few}; RPE needs two consecutive such frames",
                "rpe_rot_drift_deg": f"{few}; RPE needs two consecutive such frames",
-               "rotation_scale": f"{few}, or the reference turns less than {ROTATION_SCALE_MIN_DEG:g} deg over every "
-                                 f"{ROTATION_SCALE_SPAN} frames"}
+               "rotation_scale": (f"{few}; the rotation scale needs more than {ROTATION_SCALE_SPAN}"
+                                  if errors["frames"] <= ROTATION_SCALE_SPAN else
+                                  f"the reference turns less than {ROTATION_SCALE_MIN_DEG:g} deg over every "
+                                  f"{ROTATION_SCALE_SPAN} frames")}
     record = finite_or_null(errors, reasons)
     record["dropped_frames"] = dropped or []
     return record
