@@ -181,6 +181,7 @@ def synth(
     seed: Annotated[int, typer.Option(help="Random seed of the scene, trajectory and noise.")] = 0,
     noise: Annotated[bool, typer.Option(help="Sensor-like depth noise.")] = True,
     holes: Annotated[bool, typer.Option(help="Depth holes and dropouts.")] = True,
+    readout_ms: Annotated[float, typer.Option(help="Rolling shutter: rows read top to bottom over this many ms (0: global shutter; Kinect v1 colour: about 25).")] = 0.0,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing sequence made by synth in OUT.")] = False,
 ) -> None:
     """Generate a synthetic blurred RGB-D sequence with exact ground truth."""
@@ -189,7 +190,7 @@ def synth(
 
     try:
         config = SynthConfig(width=width, height=height, frames=frames, trajectory=trajectory.value, scene=scene.value,
-                             blur=blur.value, seed=seed, depth_noise=noise, holes=holes)
+                             blur=blur.value, seed=seed, depth_noise=noise, holes=holes, readout_ms=readout_ms)
     except ValueError as err:
         raise InputError(None, str(err), "see 'taichi-gs synth --help'") from None
     if out.exists() and not out.is_dir():
@@ -497,6 +498,7 @@ def deblur(
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
     holdout: Annotated[Optional[str], typer.Option(metavar="N|none|sharpest", help="Hold out every N-th frame as a test view, 'none', or 'sharpest' (the sharpest of every N frames; for real data).")] = None,
+    readout_ms: Annotated[Optional[float], typer.Option(min=0.0, help="Rolling shutter: the colour camera reads its rows top to bottom over this many ms (0: a global shutter; default: the preset's, which in fast is 25 for TUM fr1 and 7-Scenes (Kinect v1) and 0 otherwise).")] = None,
     profile: ProfileOption = False,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
@@ -506,7 +508,9 @@ def deblur(
     from .validation import validate_sections
 
     config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
-    changes: dict[str, int | str] = {} if k is None else {"k": k}
+    changes: dict[str, int | str | float | bool] = {} if k is None else {"k": k}
+    if readout_ms is not None:  # the user's value, 0 included, stands over a known camera's
+        changes.update(readout_ms=readout_ms, camera_readout=False)
     if holdout is not None and holdout.strip().lower() == "sharpest":
         changes["holdout"] = "sharpest"
     elif holdout is not None:

@@ -18,6 +18,7 @@ from .geometry import (
 )
 from .noreference import eroded
 from .render import Camera, Rasterizer, affine, blur, host_copy, losses, to_device, warp
+from .rolling_shutter import shutter_rows
 from .splats import SH_C0, Splats, logit, rgb_to_sh_dc
 
 TRAINED = FIELDS  # every parameter of a full 3D Gaussian learns in stage 3
@@ -155,6 +156,7 @@ class BlurScene:
         self.padded_grad_depth = to_device(np.zeros(padded, np.float32), dtype)
         self.warp_depths: list = []  # per anchor (views, H, W): the warp's depths, for its backward
         self.grad_anchor = None  # (H + 2m, W + 2m, 3): dL/d an anchor's colour
+        self._rows: dict[bytes, np.ndarray] = {}  # shutter_rows of the readout motions seen, at this height
 
     @property
     def gaussians(self):
@@ -186,6 +188,16 @@ class BlurScene:
         self.grad_anchor.fill(0.0)
         return self.grad_anchor
 
+    def shutter_rows(self, readout_motion: np.ndarray | None) -> np.ndarray | None:
+        """[ours] :func:`shutter_rows` at this scene's height (kept for the motions seen), None for a global
+        shutter (None or a zero motion)."""
+        if readout_motion is None or not np.any(readout_motion):
+            return None
+        key = np.asarray(readout_motion, dtype=np.float64).tobytes()
+        if key not in self._rows:
+            self._rows[key] = shutter_rows(readout_motion, self.height)
+        return self._rows[key]
+
     def padded_camera(self, cam_to_world: np.ndarray) -> Camera:
         """The camera with ``warp_margin`` pixels more on every side (an anchor render of a warped step)."""
         m = self.warp_margin
@@ -197,7 +209,8 @@ class BlurScene:
     def step(self, frame: np.ndarray, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
              k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None,
              colour: np.ndarray | None = None, anchors: int = 0, fallback_depth: float | None = None,
-             observe: bool = True, frozen: FrozenAnchors | None = None) -> BlurStep:
+             observe: bool = True, frozen: FrozenAnchors | None = None,
+             readout_motion: np.ndarray | None = None) -> BlurStep:
         """Render the frame's k virtual views, average them, apply the frame's affine ``colour``
         transform (3 x 4; None: identity), take (1 - l_B) L1 + l_B D-SSIM against ``frame`` plus
         ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``, back-propagate,
@@ -207,14 +220,20 @@ class BlurScene:
         k views from them (``kernels.warp``); the mid view is then the middle anchor, at tau = 1/2, and
         ``fallback_depth`` is the depth where an anchor has no surface (None: :func:`median_depth` of ``depth``).
         ``frozen`` (with ``anchors``, the scene frozen and no depth term: a held-out fit) keeps the anchor
-        renders across steps (:class:`FrozenAnchors`); the Gaussians then get no gradients."""
+        renders across steps (:class:`FrozenAnchors`); the Gaussians then get no gradients. [ours]
+        ``readout_motion`` (with anchors): a rolling shutter, the camera's motion while the rows are read
+        (:func:`shutter_rows`); each virtual view's rows are warped from the anchors at their own poses. The
+        anchors and the mid view's depth loss stay global-shutter renders."""
         if frozen is not None and (rates is not None or anchors < 1 or lambda_depth > 0):
             raise ValueError("frozen anchors need a frozen scene (rates None), anchors and no depth term")
+        rows = self.shutter_rows(readout_motion)
+        if rows is not None and anchors < 1:
+            raise ValueError("a rolling shutter (readout_motion) needs warped views (anchors)")
         taus = exposure_taus(k)
         host_copy.write(self.frame, frame)
         if anchors > 0:
             fallback = median_depth(depth) if fallback_depth is None else fallback_depth
-            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen)
+            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen, rows)
         else:
             exposure = _RenderedExposure(self, base, d_start, d_end, taus)
         predicted, grad_predicted = self.blurred, self.grad_blur
@@ -301,9 +320,19 @@ class BlurScene:
             "opacity_logits": np.full(m, logit(opacity), np.float32), "colors": sh})
         self.density.appended(m)
 
-    def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int) -> np.ndarray:
-        """The k-view average (H, W, 3) over an exposure, as NumPy."""
-        _RenderedExposure(self, base, d_start, d_end, exposure_taus(k))
+    def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int,
+                       readout_motion: np.ndarray | None = None, fallback_depth: float = 1.0) -> np.ndarray:
+        """The k-view average (H, W, 3) over an exposure, as NumPy. [ours] With a rolling shutter
+        (``readout_motion``, see :meth:`step`; the scene needs a ``warp_margin``) each view's rows are warped
+        from a render at the view's pose (``fallback_depth`` where that render has no surface)."""
+        taus = exposure_taus(k)
+        rows = self.shutter_rows(readout_motion)
+        if rows is not None and self.warp_margin < 1:
+            raise ValueError("a rolling shutter's re-blurred render needs a scene with a warp_margin")
+        if rows is None:
+            _RenderedExposure(self, base, d_start, d_end, taus)
+        else:
+            _WarpedExposure(self, base, d_start, d_end, taus, k, fallback_depth, rows=rows)
         return host_copy.read(self.blurred).astype(np.float32)
 
     def order_in_space(self) -> None:
@@ -363,10 +392,13 @@ class _RenderedExposure:
 
 class _WarpedExposure:
     """[ours] One exposure's k virtual views warped from a few padded anchor renders, their mean in
-    ``scene.blurred``; the same interface as :class:`_RenderedExposure`."""
+    ``scene.blurred``; the same interface as :class:`_RenderedExposure`. With ``rows`` (:func:`shutter_rows`)
+    each view's image rows are warped from its poses along a rolling shutter's readout; a left perturbation of
+    a view moves all its rows alike, so the pose gradients chain as for a global shutter."""
 
     def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray,
-                 anchors: int, fallback_depth: float, frozen: FrozenAnchors | None = None):
+                 anchors: int, fallback_depth: float, frozen: FrozenAnchors | None = None,
+                 rows: np.ndarray | None = None):
         self.scene, self.taus, self.frozen = scene, taus, frozen
         self.groups = anchor_groups(len(taus), anchors)
         self.anchor_taus = np.array([float(np.mean(taus[g])) for g in self.groups])
@@ -381,6 +413,8 @@ class _WarpedExposure:
             self.anchor_views, self.anchor_poses = frozen.anchors(scene, wanted)
         self.relative = [np.stack([invert(self.anchor_poses[a]) @ poses[i] for i in group])
                          for a, group in enumerate(self.groups)]
+        if rows is not None:  # rolling shutter: (views, H, 4, 4), row v of view i read at poses[i] @ rows[v]
+            self.relative = [relative[:, None] @ rows[None] for relative in self.relative]
         mid = len(self.groups) // 2  # the middle run's anchor, at tau = 1/2 (anchor_groups)
         self.mid_view, self.mid_tau = self.anchor_views[mid], float(self.anchor_taus[mid])
         self.depths = scene.warp_buffers(len(self.groups), max(len(g) for g in self.groups))

@@ -90,6 +90,10 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     sourced = sequence.sourced_pixels()
     seen = None if sourced.all() else sourced
     result["sourced_fraction"] = float(sourced.mean())
+    if (deblur / "renders" / "as_read").is_dir():
+        result["protocol"] += ("; a rolling shutter (stage 3's readout_ms): renders scored against held-out frames are "
+                               "read along its rows (renders/as_read: each row at its own pose), the gradient energy and "
+                               "dark holes are the global-shutter sharp render's")
     if seen is not None:
         result["protocol"] += (f"; every figure over the {100 * sourced.mean():.1f}% of pixels the camera saw (the "
                                "undistorted frame's border without a source pixel left out)")
@@ -106,6 +110,8 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
             name = sequence.names[i]
             frame = sequence.color(i)
             sharp = read_color(deblur / "renders" / "sharp" / f"{name}.png")
+            as_read_path = deblur / "renders" / "as_read" / f"{name}.png"  # a rolling shutter's (stage 3)
+            as_read = read_color(as_read_path) if as_read_path.is_file() else sharp
             reblurred = read_color(deblur / "renders" / "reblurred" / f"{name}.png")
             energy = gradient_energy(frame, mask=seen)
             values = {"reblur_psnr_db": _psnr(reblurred, frame, seen), "reblur_ssim": _ssim(reblurred, frame, seen),
@@ -117,19 +123,19 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
                                                                 / max(energy, 1e-12))
             if group == "test":
                 warped, mask = _best_neighbour_warp(sequence, poses, train, i, frame, seen)
-                values.update({"held_out_psnr_db": _psnr(sharp, frame, seen),
-                               "held_out_ssim": _ssim(sharp, frame, seen),
+                values.update({"held_out_psnr_db": _psnr(as_read, frame, seen),
+                               "held_out_ssim": _ssim(as_read, frame, seen),
                                "sharpest_over_neighbours_gradient_energy_ratio": _over_neighbours(sequence, train, i,
                                                                                                   energy, seen),
                                "warped_neighbour_psnr_db": masked_psnr(warped, frame, mask),
                                "warped_neighbour_ssim": masked_ssim(warped, frame, mask),
-                               "render_on_warp_mask_psnr_db": masked_psnr(sharp, frame, mask),
-                               "render_on_warp_mask_ssim": masked_ssim(sharp, frame, mask),
+                               "render_on_warp_mask_psnr_db": masked_psnr(as_read, frame, mask),
+                               "render_on_warp_mask_ssim": masked_ssim(as_read, frame, mask),
                                "reblur_on_warp_mask_psnr_db": masked_psnr(reblurred, frame, mask),
                                "reblur_on_warp_mask_ssim": masked_ssim(reblurred, frame, mask),
                                "warp_coverage": float(mask.mean())})
                 if len(grid_rows) < GRID_VIEWS:
-                    grid_rows.append([frame, sharp, reblurred, np.where(mask[..., None], warped, 0.0)])
+                    grid_rows.append([frame, as_read, reblurred, np.where(mask[..., None], warped, 0.0)])
                     grid_titles.append(name)
             for key, value in values.items():
                 scores.setdefault(key, []).append(value)
@@ -139,7 +145,8 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     result["per_view"] = sorted(per_view, key=lambda view: view["index"])
     if grid_rows:
         image_grid(Path(run_dir) / "report" / "no_reference_views.png", grid_rows,
-                   ["held-out frame", "sharp render", "re-blurred render", "warped neighbour"], grid_titles)
+                   ["held-out frame", "sharp render" + (", as read" if (deblur / "renders" / "as_read").is_dir() else ""),
+                    "re-blurred render", "warped neighbour"], grid_titles)
     return result
 
 

@@ -14,6 +14,14 @@ frame so that adjacent renders move every visible point by less than ``SUBFRAME_
 exposure fraction of the frame interval is chosen per sequence so that the mean smear reaches the
 blur level's target (a fraction of the image width), capped at the full frame interval.
 
+[ours] ``readout_ms`` > 0 makes a rolling shutter, as Kinect v1's colour camera has: image row v is exposed
+``readout ((v + 1/2) / H - 1/2)`` later than the frame's timestamp (rows read top to bottom, the middle row at
+the timestamp), over an exposure of the same length, along the camera's path itself. Each row averages the
+sharp renders (spaced as above over the whole readout and exposure) whose times fall in its exposure, and its
+depth is the depth of its row at its own mid-exposure time (the sensor's rows follow the colour's). The sharp
+ground truth stays a global-shutter render at the timestamp's pose, and ``exposure.txt`` the middle row's
+exposure.
+
 Taichi is imported (through :mod:`taichi_gs.kernels.raycast`) only when something is rendered, so
 building and validating a :class:`SynthConfig` stays cheap.
 """
@@ -72,6 +80,7 @@ class SynthConfig:
     fps: float = 30.0
     fov_deg: float = 60.0  # horizontal; fx = fy
     depth_scale: float = 5000.0
+    readout_ms: float = 0.0  # [ours] rolling shutter: rows read top to bottom over this time (0: global shutter)
 
     def __post_init__(self) -> None:
         if self.trajectory not in TRAJECTORIES:
@@ -90,6 +99,9 @@ class SynthConfig:
             raise ValueError(f"fov_deg must lie in [10, 150], got {self.fov_deg}")
         if not self.depth_scale > 0:
             raise ValueError(f"depth_scale must be positive, got {self.depth_scale}")
+        if not (math.isfinite(self.readout_ms) and 0.0 <= self.readout_ms <= 1000.0 / self.fps):
+            raise ValueError(f"readout_ms must lie in [0, {1000.0 / self.fps:g}] (one frame interval), "
+                             f"got {self.readout_ms}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -319,20 +331,54 @@ class FrameImages:
 
 
 def render_frame(
-    config: SynthConfig, index: int, mid: np.ndarray, exposure: np.ndarray
+    config: SynthConfig, index: int, mid: np.ndarray, exposure: np.ndarray, exposure_s: float = 0.0
 ) -> tuple[FrameImages, FrameStats]:
-    """Sharp view and depth at mid-exposure, blurred colour over the exposure, sensor depth."""
+    """Sharp view and depth at mid-exposure, blurred colour over the exposure, sensor depth; with a rolling
+    shutter (``config.readout_ms``) the rows' exposures of ``exposure_s`` seconds follow the camera path."""
     K = camera_matrix(config)
     sharp, depth = render_view(mid, K, config.width, config.height, config.seed, config.scene)
     smear_mean, smear_max = exposure_smear(depth, K, mid, exposure[0], exposure[1])
     count = subframe_count(smear_max)
     blurred = sharp
-    if count > 1:
+    if config.readout_ms > 0:
+        blurred, depth, count = _rolling_shutter_frame(config, index / config.fps, exposure_s, depth, K)
+    elif count > 1:
         poses = exposure_poses(exposure[0], exposure[1], count)
         blurred, _ = _render_mean(poses, K, config.width, config.height, config.seed, config.scene)
     rng = np.random.default_rng([config.seed, index, 0xDE97])
     raw = encode_depth(sensor_depth(depth, config, rng), config.depth_scale)
     return FrameImages(blurred, sharp, raw), FrameStats(count, smear_mean, smear_max)
+
+
+def _rolling_shutter_frame(config: SynthConfig, t: float, exposure_s: float, depth: np.ndarray,
+                           K: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(blurred colour, depth, sharp renders made) of the frame at time ``t`` through a rolling shutter (module
+    docstring): renders spaced under SUBFRAME_STEP_PX over the readout and exposure, each standing for the
+    time around it; a row averages them weighted by how much of that time lies in its exposure, and takes its
+    depth from the render nearest its mid-exposure. An instant exposure renders each row at its own time."""
+    path = _camera_path(config)
+    h, w = config.height, config.width
+    readout = config.readout_ms / 1000.0
+    centres = t + readout * ((np.arange(h) + 0.5) / h - 0.5)
+    times, weights = centres, np.eye(h)  # (renders,), (renders, rows)
+    if exposure_s > 0:
+        first, last = t - 0.5 * (readout + exposure_s), t + 0.5 * (readout + exposure_s)
+        _, span_max = exposure_smear(depth, K, path(t), path(first), path(last))
+        times = np.linspace(first, last, subframe_count(span_max))
+        half = 0.5 * (times[1] - times[0])
+        lo = np.maximum(times[:, None] - half, centres[None] - 0.5 * exposure_s)
+        hi = np.minimum(times[:, None] + half, centres[None] + 0.5 * exposure_s)
+        weights = np.maximum(hi - lo, 0.0)
+    nearest = np.abs(times[:, None] - centres[None]).argmin(axis=0)
+    total, rows_depth = np.zeros((h, w, 3)), np.zeros((h, w))
+    for j, time in enumerate(times):
+        if not (weights[j].any() or (nearest == j).any()):
+            continue
+        rgb, z = _render_mean([path(time)], K, w, h, config.seed, config.scene)
+        total += weights[j][:, None, None] * rgb
+        rows_depth[nearest == j] = z[nearest == j]
+    blurred = total / weights.sum(axis=0)[:, None, None]
+    return blurred.astype(np.float32), rows_depth.astype(np.float32), len(times)
 
 
 def _write_frame(out_dir: Path, index: int, frame: FrameImages) -> None:
@@ -392,7 +438,7 @@ def generate(config: SynthConfig, out_dir: Path, progress: Callable[[int, int], 
     timestamps, mids, exposure, fraction = _sequence_poses(config)
     stats = []
     for i in range(config.frames):
-        images, frame_stats = render_frame(config, i, mids[i], exposure[i])
+        images, frame_stats = render_frame(config, i, mids[i], exposure[i], fraction / config.fps)
         _write_frame(out_dir, i, images)
         stats.append(frame_stats)
         if progress is not None:

@@ -103,7 +103,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "densify_by": _one_of("gradient", "error", "both"), "error_densify_share": FRACTION,
         "prune_weight_share": FRACTION,
         "error_densify_frames": COUNT, "warp_px": _within(0.5, 64), "test_fit_refresh_px": NON_NEGATIVE,
-        "keep_frame_scale_error": NON_NEGATIVE, "mid_exposure_decay": FRACTION,
+        "keep_frame_scale_error": NON_NEGATIVE, "mid_exposure_decay": FRACTION, "readout_ms": NON_NEGATIVE,
     },
 }
 
@@ -114,6 +114,7 @@ RELATION_RULES: list[tuple[str, str, Callable[[Any], bool]]] = [
     ("pose", "icp_scales and icp_iterations need one entry per ICP level",
      lambda c: len(c.icp_scales) == len(c.icp_iterations)),
     ("deblur", "densify_from must not exceed densify_until", lambda c: c.densify_from <= c.densify_until),
+    ("deblur", "readout_ms (a rolling shutter) needs warp_views = true", lambda c: c.readout_ms == 0 or c.warp_views),
 ]
 
 

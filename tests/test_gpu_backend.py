@@ -82,6 +82,7 @@ def kernel_outputs() -> dict[str, np.ndarray]:
     import taichi as ti
 
     from taichi_gs.geometry import se3_exp
+    from taichi_gs.rolling_shutter import shutter_rows
     from taichi_gs.kernels import affine, blur, density_stats, losses, warp
     from taichi_gs.kernels.optim import Adam
     from taichi_gs.kernels.splat import to_device
@@ -147,6 +148,12 @@ def kernel_outputs() -> dict[str, np.ndarray]:
     out["d_warp_pose"] = warp.backward(dev(target - 0.5), dev(anchor), z, views, K, margin, 0.5, grad_anchor)
     out["d_warp_anchor"] = grad_anchor.to_numpy()
     out["d_warp_pose_only"] = warp.backward(dev(target - 0.5), dev(anchor), z, views, K, margin, 0.5, None)
+    rows = views[:2, None] @ shutter_rows(np.array([0.01, 0.0, -0.01, 0.02, 0.01, -0.02]), 37)[None]  # rolling
+    grad_anchor.fill(0.0)
+    warp.accumulate(dev(anchor), dev(anchor_depth), dev(1.0 - alpha), rows, K, margin, 2.0, 0.5, warped, z, first=True)
+    out["warp_rows"] = warped.to_numpy()
+    out["d_warp_rows_pose"] = warp.backward(dev(target - 0.5), dev(anchor), z, rows, K, margin, 0.5, grad_anchor)
+    out["d_warp_rows_anchor"] = grad_anchor.to_numpy()
     shapes = {"x": (300, 3), "y": (300,), "z": (300, 4, 3)}
     params = {name: dev(rng.normal(size=shape)) for name, shape in shapes.items()}
     grads = {name: dev(np.zeros(shape)) for name, shape in shapes.items()}

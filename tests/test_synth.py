@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from taichi_gs.geometry import backproject, interpolate, invert, pose_from_rt, project, so3_exp, so3_log, transform
+from taichi_gs import synth
+from taichi_gs.io.images import encode_depth
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.io.trajectory import read_tum, read_tum_rows
 from taichi_gs.synth import (
@@ -51,7 +53,8 @@ def noisy_sequence(tmp_path_factory) -> tuple[SynthConfig, Path]:
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [("trajectory", "spin", "translation, turn, handheld"), ("blur", "heavy", "none, moderate, extreme"),
-     ("frames", 1, "at least 2"), ("width", 8, "too small"), ("fps", 0.0, "positive")],
+     ("frames", 1, "at least 2"), ("width", 8, "too small"), ("fps", 0.0, "positive"),
+     ("readout_ms", -1.0, "readout_ms must lie in"), ("readout_ms", 40.0, "one frame interval")],
 )
 def test_bad_config_values_are_rejected_with_the_allowed_ones(field, value, message):
     with pytest.raises(ValueError, match=message):
@@ -285,3 +288,36 @@ def test_scene_kinds_differ_in_size_shape_and_texture():
 def test_unknown_scene_is_refused_with_the_choices():
     with pytest.raises(ValueError, match="room, office, plain, corridor"):
         SynthConfig(scene="cave")
+
+
+def test_a_rolling_shutter_renders_each_row_at_its_own_time():
+    """[ours] ``readout_ms`` without blur: row v of the colour and of the exact depth is row v of a render at
+    t + readout ((v + 1/2) / H - 1/2), the middle rows at the frame's own pose; the sharp frame stays the
+    global-shutter render at t."""
+    config = synth.SynthConfig(width=40, height=24, frames=3, trajectory="turn", blur="none", seed=4,
+                               depth_noise=False, holes=False, readout_ms=30.0)
+    t = 1 / config.fps
+    mid = synth._camera_path(config)(t)
+    images, _ = synth.render_frame(config, 1, mid, np.stack([mid, mid]))
+    K = synth.camera_matrix(config)
+    global_rgb, _ = synth.render_view(mid, K, 40, 24, 4, "room")
+    for v in (0, 5, 11, 12, 23):
+        row_time = t + 0.030 * ((v + 0.5) / 24 - 0.5)
+        rgb, depth = synth.render_view(synth._camera_path(config)(row_time), K, 40, 24, 4, "room")
+        np.testing.assert_allclose(images.blurred[v], rgb[v], atol=1e-6)
+        np.testing.assert_allclose(images.depth_raw[v], encode_depth(depth, config.depth_scale)[v])
+    np.testing.assert_allclose(images.sharp, global_rgb, atol=1e-6)
+    assert np.abs(images.blurred[0] - global_rgb[0]).mean() > 0.02  # the top row was read 15 ms early
+
+
+def test_a_rolling_shutter_with_blur_moves_the_rows_away_from_the_middle_one(tmp_path):
+    """[ours] With blur, each row averages its own exposure: the middle rows (read at the frame's time) are those
+    of an all-but-instant readout, the top and bottom rows are not."""
+    frames = {}
+    for readout in (0.001, 30.0):
+        config = synth.SynthConfig(width=64, height=48, frames=30, trajectory="turn", blur="extreme", seed=4,
+                                   depth_noise=False, holes=False, readout_ms=readout)
+        _, mids, exposure, fraction = synth._sequence_poses(config)
+        frames[readout] = synth.render_frame(config, 1, mids[1], exposure[1], fraction / config.fps)[0].blurred
+    difference = np.abs(frames[30.0] - frames[0.001]).mean(axis=(1, 2))
+    assert difference[23:25].mean() < 0.01 and difference[:4].mean() > 10 * difference[23:25].mean()

@@ -17,6 +17,7 @@ from taichi_gs.deblur_model import BlurScene, FrozenAnchors, anchor_groups, expo
 from taichi_gs.geometry import invert, raster_intrinsics, se3_exp, virtual_pose
 from taichi_gs.kernels import runtime, warp
 from taichi_gs.kernels.splat import to_device
+from taichi_gs.rolling_shutter import shutter_rows
 from taichi_gs.splats import Splats
 from taichi_gs.stages import deblur
 
@@ -193,7 +194,7 @@ def test_the_anchors_own_view_follows_the_interpolated_path(anchor):
     near = se3_exp(np.full(6, 1e-8))
     views = np.stack([np.eye(4), near])
     hair = np.eye(4) + 1e-12
-    flags = warp._args(np.stack([hair, near]), K_RASTER, MARGIN, ti.f64)[0].to_numpy()[:2, warp.IDENTITY]
+    flags = warp._args(np.stack([hair, near]), K_RASTER, MARGIN, H, ti.f64)[2].to_numpy()[:2, warp.IDENTITY]
     np.testing.assert_array_equal(flags, [1.0, 0.0])
     np.testing.assert_array_equal(hair, np.eye(4) + 1e-12)  # snapped to the identity on the device only
     results = []
@@ -239,6 +240,77 @@ def test_a_wrongly_padded_anchor_is_refused(anchor):
                         MARGIN + 1, 2.5, 1.0, out, z)
 
 
+ROLL = np.array([0.03, -0.02, 0.01, 0.04, 0.02, -0.05])  # a rolling shutter's motion over the readout
+
+
+def warp_by_rows(rgb, depth, trans, Ms) -> tuple[np.ndarray, np.ndarray]:
+    """NumPy: (depths, weighted colours) of a view whose row v is warped through transform Ms[v]."""
+    z, out = np.zeros((H, W)), np.zeros((H, W, 3))
+    for v, M in enumerate(Ms):
+        z_full = reference_depths(depth, trans, M, K_RASTER, MARGIN, 2.5, H, W)
+        z[v] = z_full[v]
+        out[v] = WEIGHT * interpolate(rgb, *anchor_coordinates(z_full, M, K_RASTER, MARGIN))[v]
+    return z, out
+
+
+def test_a_rolling_shutter_warps_each_row_at_its_own_pose(anchor):
+    """[ours] A transform per image row (V, H, 4, 4): row v of the view is row v of the view warped through
+    its own transform, against the NumPy reference; and it differs from the global shutter's by pixels."""
+    rgb, depth, trans, M = anchor
+    Ms = M[None] @ shutter_rows(ROLL, H)
+    _, out, z = run_warp(rgb, depth, trans, Ms[None])
+    z_ref, expected = warp_by_rows(rgb, depth, trans, Ms)
+    np.testing.assert_allclose(z.to_numpy()[0], z_ref, rtol=1e-12)
+    np.testing.assert_allclose(out.to_numpy(), expected, atol=1e-12)
+    _, global_shutter, _ = run_warp(rgb, depth, trans, M)
+    assert np.abs(out.to_numpy() - global_shutter.to_numpy()).max() > 0.1
+
+
+def test_equal_row_transforms_are_the_global_shutter(anchor):
+    """[ours] The same transform on every row gives the one-per-view warp exactly, forward and backward."""
+    rgb, depth, trans, M = anchor
+    g = to_device(np.random.default_rng(9).normal(size=(H, W, 3)), ti.f64)
+    results = []
+    for transforms in (M, np.repeat(M[None, None], H, axis=1)):
+        a, out, z = run_warp(rgb, depth, trans, transforms)
+        grad_anchor = to_device(np.zeros(rgb.shape), ti.f64)
+        pose = warp.backward(g, a, z, transforms, K_RASTER, MARGIN, WEIGHT, grad_anchor)
+        results.append((out.to_numpy(), pose, grad_anchor.to_numpy()))
+    for one, per_row in zip(*results):
+        np.testing.assert_array_equal(one, per_row)
+
+
+def test_a_rolling_shutter_backward_matches_finite_differences(anchor):
+    """[ours] With a transform per row, dL/d epsilon is for exp(epsilon) on every row's transform at once, and
+    the anchor's gradient is the per-row warp's transpose."""
+    rgb, depth, trans, M = anchor
+    Ms = M[None] @ shutter_rows(ROLL, H)
+    a, _, z = run_warp(rgb, depth, trans, Ms[None])
+    z_fixed = z.to_numpy()[0]
+    g = np.random.default_rng(10).normal(size=(H, W, 3))
+    grad_anchor = to_device(np.zeros(rgb.shape), ti.f64)
+    g_eps = warp.backward(to_device(g, ti.f64), a, z, Ms[None], K_RASTER, MARGIN, WEIGHT, grad_anchor)[0]
+
+    def loss(image, lead=np.eye(4)):
+        total = 0.0
+        for v in range(H):
+            sx, sy = anchor_coordinates(z_fixed, lead @ Ms[v], K_RASTER, MARGIN)
+            total += np.sum(g[v] * WEIGHT * interpolate(image, sx, sy)[v])
+        return float(total)
+
+    h = 1e-6
+    numeric = np.array([(loss(rgb, se3_exp(h * e)) - loss(rgb, se3_exp(-h * e))) / (2 * h) for e in np.eye(6)])
+    assert np.abs(numeric).min() > 1e-3
+    np.testing.assert_allclose(g_eps, numeric, rtol=1e-6)
+    assert np.sum(grad_anchor.to_numpy() * rgb) == pytest.approx(loss(rgb), rel=1e-10)
+
+
+def test_row_transforms_for_another_height_are_refused(anchor):
+    rgb, depth, trans, M = anchor
+    with pytest.raises(ValueError, match="row transforms per view"):
+        run_warp(rgb, depth, trans, np.repeat(M[None, None], H + 1, axis=1))
+
+
 # ---- the composed stage-3 step -------------------------------------------------------------------------
 
 WIDTH, HEIGHT, STEP_MARGIN = 40, 32, 5
@@ -266,22 +338,30 @@ def targets(seed: int) -> tuple[np.ndarray, np.ndarray]:
     return frame.astype(np.float32), depth.astype(np.float32)
 
 
-def warped_loss(model: BlurScene, frame, depth, d_start, d_end, z_fixed: list[np.ndarray]) -> float:
+def warp_rows_from(rgb, z, M, rows) -> np.ndarray:
+    """NumPy: a view warped at depths z through M, or with a rolling shutter's ``rows`` row v through M @ rows[v]."""
+    Kr = raster_intrinsics(K)
+    if rows is None:
+        return interpolate(rgb, *anchor_coordinates(z, M, Kr, STEP_MARGIN))
+    return np.stack([interpolate(rgb, *anchor_coordinates(z, M @ row, Kr, STEP_MARGIN))[v] for v, row in enumerate(rows)])
+
+
+def warped_loss(model: BlurScene, frame, depth, d_start, d_end, z_fixed: list[np.ndarray], rows=None) -> float:
     """L1 of the mean of the k views warped (at the given depths) from float64 anchor renders, plus the
-    mid anchor's masked depth L1 (NumPy; D-SSIM is off here: its kernel is checked elsewhere)."""
+    mid anchor's masked depth L1 (NumPy; D-SSIM is off here: its kernel is checked elsewhere); ``rows``: a
+    rolling shutter's row transforms (:func:`shutter_rows`)."""
     taus = exposure_taus(K_VIEWS)
     groups = anchor_groups(K_VIEWS, ANCHORS)
     anchor_taus = [float(np.mean(taus[g])) for g in groups]
     mid = int(np.argmin(np.abs(np.array(anchor_taus) - 0.5)))
     blurred, depth_l1 = 0.0, 0.0
-    Kr = raster_intrinsics(K)
     for a, group in enumerate(groups):
         anchor_pose = virtual_pose(BASE, d_start, d_end, anchor_taus[a])
         view = model.rasterizer.forward(model.gaussians, model.padded_camera(anchor_pose))
         rgb, rendered_depth = view.rgb.to_numpy(), view.depth.to_numpy()
         for i in group:
             M = invert(anchor_pose) @ virtual_pose(BASE, d_start, d_end, taus[i])
-            blurred = blurred + interpolate(rgb, *anchor_coordinates(z_fixed[i], M, Kr, STEP_MARGIN)) / K_VIEWS
+            blurred = blurred + warp_rows_from(rgb, z_fixed[i], M, rows) / K_VIEWS
         if a == mid:
             padded = np.pad(depth.astype(np.float64), STEP_MARGIN)
             valid = padded > 0
@@ -327,6 +407,58 @@ def test_warped_step_gradients_match_finite_differences():
                 numeric = (loss(moved_plus) - loss(moved_minus)) / (2 * h)
                 scale = np.abs(grads[name]).max()
                 assert grads[name][(i, *idx)] == pytest.approx(numeric, abs=1e-4 * scale), (name, i, idx)
+
+
+ROLL_STEP = np.array([0.02, -0.015, 0.005, 0.03, -0.02, 0.025])
+
+
+def test_rolling_shutter_step_gradients_match_finite_differences():
+    """[ours] A step with a rolling shutter (``readout_motion``): its loss is the per-row warped NumPy loss,
+    and its exposure and Gaussian gradients match that loss's finite differences."""
+    runtime.init()
+    frame, depth = targets(7)
+    model = BlurScene(scene(4), K, WIDTH, HEIGHT, precision="f64", warp_margin=STEP_MARGIN)
+    step = model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, 0.0, LAMBDA_DEPTH, rates=None, anchors=ANCHORS,
+                      readout_motion=ROLL_STEP)
+    grads = model.gaussians.download(grads=True)
+    params = model.arrays()
+    z_fixed = [model.warp_depths[a].to_numpy()[j] for a, group in enumerate(anchor_groups(K_VIEWS, ANCHORS))
+               for j in range(len(group))]
+    rows = shutter_rows(ROLL_STEP, HEIGHT)
+    frame64 = frame.astype(np.float64)
+
+    def loss(arrays=None, d_start=D_START, d_end=D_END, shutter=rows) -> float:
+        model.gaussians.upload(**(arrays or params))
+        return warped_loss(model, frame64, depth, d_start, d_end, z_fixed, shutter)
+
+    total = step.losses["l1"] + LAMBDA_DEPTH * step.losses["depth"]
+    assert total == pytest.approx(loss(), rel=1e-9)
+    assert abs(loss(shutter=None) - total) > 1e-3, "the test's shutter should change the loss"
+    h = 1e-6
+    for which, analytic, value in (("d_start", step.grad_start, D_START), ("d_end", step.grad_end, D_END)):
+        numeric = np.array([(loss(**{which: value + h * e}) - loss(**{which: value - h * e})) / (2 * h)
+                            for e in np.eye(6)])
+        np.testing.assert_allclose(analytic, numeric, rtol=1e-4, atol=1e-6 * np.abs(numeric).max(), err_msg=which)
+    seen = np.flatnonzero(np.abs(grads["colors"]).sum(axis=(1, 2)) > 1e-6)
+    for name in ("means", "colors"):
+        for i in np.random.default_rng(2).choice(seen, 3, replace=False):
+            for idx in np.ndindex(params[name].shape[1:]):
+                moved_plus, moved_minus = dict(params), dict(params)
+                moved_plus[name], moved_minus[name] = params[name].copy(), params[name].copy()
+                moved_plus[name][(i, *idx)] += h
+                moved_minus[name][(i, *idx)] -= h
+                numeric = (loss(moved_plus) - loss(moved_minus)) / (2 * h)
+                assert grads[name][(i, *idx)] == pytest.approx(numeric, abs=1e-4 * np.abs(grads[name]).max())
+
+
+def test_a_rolling_shutter_needs_warped_views():
+    runtime.init()
+    frame, depth = targets(7)
+    model = BlurScene(scene(4), K, WIDTH, HEIGHT, precision="f64", warp_margin=STEP_MARGIN)
+    with pytest.raises(ValueError, match="needs warped views"):
+        model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, 0.0, 0.0, rates=None, readout_motion=ROLL_STEP)
+    # a zero motion is a global shutter: allowed without anchors
+    model.step(frame, depth, BASE, D_START, D_END, K_VIEWS, 0.0, 0.0, rates=None, readout_motion=np.zeros(6))
 
 
 @pytest.mark.parametrize("anchors", [1, 2, 3, 4, 5])

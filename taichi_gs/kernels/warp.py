@@ -134,15 +134,21 @@ def _kernels(dt) -> SimpleNamespace:
         return vec3(image[y, x, 0], image[y, x, 1], image[y, x, 2])
 
     @ti.func
+    def transform_row(view, v, rows_per_view):
+        """The row of ``transforms`` that holds view ``view``'s transform for target image row v: one per view
+        (``rows_per_view`` 1), or one per view and image row (a rolling shutter: ``rows_per_view`` = H)."""
+        return view * rows_per_view + ti.min(v, rows_per_view - 1)
+
+    @ti.func
     def view_transform(transforms: ti.template(), i):
-        """(R, t) of view i from its row of ``transforms`` (R row-major, then t)."""
+        """(R, t) from row i of ``transforms`` (R row-major, then t)."""
         R = ti.Matrix([[transforms[i, 3 * r + c] for c in ti.static(range(3))] for r in ti.static(range(3))], dt=dt)
         return R, vec3(transforms[i, 9], transforms[i, 10], transforms[i, 11])
 
     @ti.func
     def pixel_forward(u, v, anchor_rgb: ti.template(), anchor_depth: ti.template(), anchor_trans: ti.template(),
-                      transforms: ti.template(), n_views, intr, margin, fallback, weight, keep, out: ti.template(),
-                      z_out: ti.template()):
+                      transforms: ti.template(), n_views, rows_per_view, intr, margin, fallback, weight, keep,
+                      out: ti.template(), z_out: ti.template()):
         """Target pixel (u, v) of every view: its depths into ``z_out``, the weighted sum into ``out``."""
         hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
         total = vec3(0.0, 0.0, 0.0)
@@ -150,21 +156,22 @@ def _kernels(dt) -> SimpleNamespace:
         z_anchor = surface_depth(anchor_depth, anchor_trans, ti.cast(u + margin, dt), ti.cast(v + margin, dt),
                                  fallback)
         for view in range(n_views):
-            if transforms[view, IDENTITY] > 0.5:  # the view is the anchor's own: its pixel, no interpolation
+            row = transform_row(view, v, rows_per_view)
+            if transforms[row, IDENTITY] > 0.5:  # the view is the anchor's own: its pixel, no interpolation
                 z_out[view, v, u] = ti.max(z_anchor, MIN_Z)
                 total += rgb_at(anchor_rgb, v + margin, u + margin)
             else:
-                R, t = view_transform(transforms, view)
+                R, t = view_transform(transforms, row)
                 rotated_ray = R @ ray
                 z = target_depth(z_anchor, rotated_ray, anchor_depth, anchor_trans, R, t, intr, margin, fallback)
                 z_out[view, v, u] = z
                 _X, x0, y0, wx, _dwx, wy, _dwy, _inside_x, _inside_y = sample_at(rotated_ray, z, t, intr, margin,
                                                                                  hp, wp)
                 for b in ti.static(range(TAPS)):
-                    row = vec3(0.0, 0.0, 0.0)
+                    tap_row = vec3(0.0, 0.0, 0.0)
                     for a in ti.static(range(TAPS)):
-                        row += wx[a] * rgb_at(anchor_rgb, y0 + b, x0 + a)
-                    total += wy[b] * row
+                        tap_row += wx[a] * rgb_at(anchor_rgb, y0 + b, x0 + a)
+                    total += wy[b] * tap_row
         for c in ti.static(range(3)):
             out[v, u, c] = keep * out[v, u, c] + weight * total[c]
 
@@ -173,8 +180,9 @@ def _kernels(dt) -> SimpleNamespace:
         anchor_rgb: img3,  # (Hp, Wp, 3) the anchor's render, Hp = H + 2 margin
         anchor_depth: img2,  # (Hp, Wp) its blended z
         anchor_trans: img2,  # (Hp, Wp) its final transmittance
-        transforms: img2,  # (>= V, 13) each view's target -> anchor transform and identity flag
+        transforms: img2,  # (>= V x rows_per_view, 13) each view's target -> anchor transform and identity flag
         n_views: ti.i32,  # V
+        rows_per_view: ti.i32,  # 1, or H: a transform per image row (rolling shutter)
         intr: vec4,  # target fx, fy, cx, cy (rasterizer pixel centres)
         margin: ti.i32,
         fallback: dt,  # metres, where the anchor has no surface
@@ -188,11 +196,11 @@ def _kernels(dt) -> SimpleNamespace:
                 if i % spread == 0:
                     for u in range(out.shape[1]):
                         pixel_forward(u, i // spread, anchor_rgb, anchor_depth, anchor_trans, transforms, n_views,
-                                      intr, margin, fallback, weight, keep, out, z_out)
+                                      rows_per_view, intr, margin, fallback, weight, keep, out, z_out)
         else:  # GPU: a thread per pixel
             for v, u in ti.ndrange(out.shape[0], out.shape[1]):
-                pixel_forward(u, v, anchor_rgb, anchor_depth, anchor_trans, transforms, n_views, intr, margin,
-                              fallback, weight, keep, out, z_out)
+                pixel_forward(u, v, anchor_rgb, anchor_depth, anchor_trans, transforms, n_views, rows_per_view, intr,
+                              margin, fallback, weight, keep, out, z_out)
 
     @ti.func
     def pixel_sample(u, v, z_in: ti.template(), view, R, t, intr, margin, hp, wp):
@@ -292,8 +300,9 @@ def _kernels(dt) -> SimpleNamespace:
         grad_out: img3,  # (H, W, 3) dL/d out
         anchor_rgb: img3,  # (Hp, Wp, 3)
         z_in: img3,  # (>= V, H, W) from forward
-        transforms: img2,  # (>= V, 13)
+        transforms: img2,  # (>= V x rows_per_view, 13)
         n_views: ti.i32,  # V
+        rows_per_view: ti.i32,
         intr: vec4,
         margin: ti.i32,
         weight: dt,
@@ -305,13 +314,14 @@ def _kernels(dt) -> SimpleNamespace:
             for view in range(n_views):
                 g = weight * rgb_at(grad_out, v, u)
                 pose = ti.Vector.zero(dt, N_POSE)
-                if transforms[view, IDENTITY] > 0.5:
+                row = transform_row(view, v, rows_per_view)
+                if transforms[row, IDENTITY] > 0.5:
                     pose = pose_at_identity(u, v, z_in[view, v, u], g, anchor_rgb, intr, margin)
                     if with_anchor:
                         for c in ti.static(range(3)):
                             ti.atomic_add(grad_anchor[v + margin, u + margin, c], g[c])
                 else:
-                    R, t = view_transform(transforms, view)
+                    R, t = view_transform(transforms, row)
                     hp, wp = anchor_rgb.shape[0], anchor_rgb.shape[1]
                     X, x0, y0, wx, dwx, wy, dwy, inside_x, inside_y = pixel_sample(u, v, z_in, view, R, t, intr,
                                                                                    margin, hp, wp)
@@ -328,6 +338,7 @@ def _kernels(dt) -> SimpleNamespace:
         z_in: img3,
         transforms: img2,
         n_views: ti.i32,
+        rows_per_view: ti.i32,
         intr: vec4,
         margin: ti.i32,
         weight: dt,
@@ -343,8 +354,9 @@ def _kernels(dt) -> SimpleNamespace:
                 lane = i // LANE_SPREAD
                 for v in range(lane * h // lanes, (lane + 1) * h // lanes):
                     for view in range(n_views):
-                        R, t = view_transform(transforms, view)
-                        identity = transforms[view, IDENTITY] > 0.5
+                        row = transform_row(view, v, rows_per_view)
+                        R, t = view_transform(transforms, row)
+                        identity = transforms[row, IDENTITY] > 0.5
                         acc = ti.Vector.zero(dt, N_POSE)  # the row's reads, then its writes (module docstring)
                         for u in range(grad_out.shape[1]):
                             acc += pixel_pose(u, v, grad_out, anchor_rgb, z_in, view, R, t, intr, margin, weight,
@@ -374,13 +386,18 @@ _scratch = scan.Scratch()
 _lane_buffers: dict[str, ti.Ndarray] = {}  # the CPU backward's private gradients, zeroed when made
 
 
-def _args(transforms: np.ndarray, K: np.ndarray, margin: int, dtype) -> tuple:
-    """(V, 13) device rows [R row-major, t, identity flag] of the views' 4x4 target -> anchor transforms, and
-    the intrinsics vector. A view within ``IDENTITY_TOLERANCE`` of the identity is the anchor's own pose (the
-    middle view of an odd group, ``deblur_model.anchor_groups``): it is flagged, and the kernels read its pixels
-    instead of interpolating them (with a margin, so that the central differences of its pose gradient stay in
-    the image)."""
-    M = np.array(transforms, dtype=np.float64).reshape(-1, 4, 4)  # a copy: the caller's stay as given
+def _args(transforms: np.ndarray, K: np.ndarray, margin: int, height: int, dtype) -> tuple:
+    """(V, rows per view, device rows [R row-major, t, identity flag] of the views' 4x4 target -> anchor
+    transforms, the intrinsics vector). ``transforms`` is (V, 4, 4), or (V, H, 4, 4) with one transform per
+    target image row (a rolling shutter, ``deblur_model``). A transform within ``IDENTITY_TOLERANCE`` of the
+    identity is the anchor's own pose (the middle view of an odd group, ``deblur_model.anchor_groups``): it
+    is flagged, and the kernels read its pixels instead of interpolating them (with a margin, so that the
+    central differences of its pose gradient stay in the image)."""
+    M = np.array(transforms, dtype=np.float64)  # a copy: the caller's stay as given
+    if M.ndim == 4 and M.shape[1] != height:
+        raise ValueError(f"{M.shape[1]} row transforms per view for an image of {height} rows")
+    views, rows_per_view = (M.shape[0], M.shape[1]) if M.ndim == 4 else (len(M.reshape(-1, 4, 4)), 1)
+    M = M.reshape(-1, 4, 4)
     identity = np.abs(M[:, :3, :] - np.eye(4)[:3]).max(axis=(1, 2)) <= IDENTITY_TOLERANCE
     identity &= margin >= 1
     M[identity] = np.eye(4)
@@ -390,7 +407,7 @@ def _args(transforms: np.ndarray, K: np.ndarray, margin: int, dtype) -> tuple:
     padded[: len(rows)] = rows
     host_copy.write(device, padded)
     K = np.asarray(K, dtype=np.float64)
-    return device, ti.Vector([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dt=dtype)
+    return views, rows_per_view, device, ti.Vector([K[0, 0], K[1, 1], K[0, 2], K[1, 2]], dt=dtype)
 
 
 def _check(anchor_rgb: ti.Ndarray, image: ti.Ndarray, margin: int, z: ti.Ndarray, views: int) -> None:
@@ -410,12 +427,13 @@ def accumulate(anchor_rgb: ti.Ndarray, anchor_depth: ti.Ndarray, anchor_trans: t
     (H + 2m, W + 2m, 3), its blended depth and transmittance) into ``out`` (H, W, 3); ``first``
     overwrites instead. ``targets_to_anchor``: (V, 4, 4) from each target camera to the anchor's; ``K``:
     the targets' intrinsics in the rasterizer's convention (the anchor's are the same, shifted by the
-    margin). ``z_out`` (>= V, H, W) receives each pixel's depth for :func:`backward`."""
-    views = len(np.asarray(targets_to_anchor).reshape(-1, 4, 4))
+    margin). ``targets_to_anchor`` may instead be (V, H, 4, 4), a transform for each image row of each view
+    (the rows of a rolling shutter, read at different poses). ``z_out`` (>= V, H, W) receives each pixel's
+    depth for :func:`backward`."""
+    views, rows_per_view, transforms, intr = _args(targets_to_anchor, K, margin, out.shape[0], out.dtype)
     _check(anchor_rgb, out, margin, z_out, views)
-    transforms, intr = _args(targets_to_anchor, K, margin, out.dtype)
-    _kernels(out.dtype).forward(anchor_rgb, anchor_depth, anchor_trans, transforms, views, intr, margin,
-                                fallback_depth, weight, 0.0 if first else 1.0, out, z_out)
+    _kernels(out.dtype).forward(anchor_rgb, anchor_depth, anchor_trans, transforms, views, rows_per_view, intr,
+                                margin, fallback_depth, weight, 0.0 if first else 1.0, out, z_out)
 
 
 def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, targets_to_anchor: np.ndarray,
@@ -423,25 +441,25 @@ def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, target
     """Given dL/d out of :func:`accumulate`'s term (``grad_out`` (H, W, 3); the term is ``weight`` x the
     sum of the warped views), add dL/d anchor colour into ``grad_anchor`` (None: not wanted, the anchor is
     a constant) and return dL/d epsilon (V, 6) [translation, rotation] for ``exp(epsilon) @
-    targets_to_anchor[i]``, epsilon in the anchor's frame."""
-    views = len(np.asarray(targets_to_anchor).reshape(-1, 4, 4))
-    _check(anchor_rgb, grad_out, margin, z, views)
+    targets_to_anchor[i]``, epsilon in the anchor's frame. With a transform per image row (V, H, 4, 4), the
+    perturbation moves every row of view i alike: ``exp(epsilon) @ targets_to_anchor[i, v]``."""
     dtype, height = grad_out.dtype, grad_out.shape[0]
+    views, rows_per_view, transforms, intr = _args(targets_to_anchor, K, margin, height, dtype)
+    _check(anchor_rgb, grad_out, margin, z, views)
     rows = _scratch.get(f"warp rows {dtype}", height * views, dtype, (N_POSE,))
-    transforms, intr = _args(targets_to_anchor, K, margin, dtype)
     kernels = _kernels(dtype)
     backend = runtime.current()
     with_anchor = int(grad_anchor is not None)
     grad_anchor = anchor_rgb if grad_anchor is None else grad_anchor  # any (Hp, Wp, 3) array: not written
     if backend.gpu_kernels:
         rows.fill(0.0)
-        kernels.backward_atomic(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, with_anchor,
-                                grad_anchor, rows)
+        kernels.backward_atomic(grad_out, anchor_rgb, z, transforms, views, rows_per_view, intr, margin, weight,
+                                with_anchor, grad_anchor, rows)
     else:
         lanes = max(backend.cpu_threads, 1)
         private = _private_gradients(lanes, tuple(anchor_rgb.shape), dtype)
-        kernels.backward_lanes(grad_out, anchor_rgb, z, transforms, views, intr, margin, weight, with_anchor, lanes,
-                               private, grad_anchor, rows)
+        kernels.backward_lanes(grad_out, anchor_rgb, z, transforms, views, rows_per_view, intr, margin, weight,
+                               with_anchor, lanes, private, grad_anchor, rows)
     return host_copy.read(rows, height * views).astype(np.float64).reshape(height, views, N_POSE).sum(axis=0)
 
 
