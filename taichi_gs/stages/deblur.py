@@ -244,8 +244,8 @@ PRESETS = {
                          # [ours] the output in stage 2's frame (BENCHMARKS, "Stage 3 back in stage 2's frame")
                          keep_frame=True,
                          # [ours] Kinect v1's rolling shutter where the reading names one (TUM fr1, 7-Scenes): held-out
-                         # re-blur +1.5 to +2.3 dB on two TUM stretches, +0.15 dB on 7-Scenes (BENCHMARKS, "A rolling
-                         # shutter in TUM's Kinect frames")
+                         # re-blur +2.3 dB on two TUM stretches, +0.16 to +0.30 dB on two 7-Scenes slices, at 1.11x the
+                         # stage-3 time (BENCHMARKS, "A rolling shutter in TUM's Kinect frames")
                          camera_readout=True),
 }
 
