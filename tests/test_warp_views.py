@@ -369,6 +369,25 @@ def warped_loss(model: BlurScene, frame, depth, d_start, d_end, z_fixed: list[np
     return float(np.abs(blurred - frame).mean() + LAMBDA_DEPTH * depth_l1)
 
 
+def check_gaussian_gradients(grads: dict, params: dict, loss, names: tuple, picks: int, seed: int,
+                             h: float = 1e-6) -> None:
+    """Every entry of the parameters ``names`` of ``picks`` random Gaussians that a colour gradient reached:
+    ``grads`` against central differences of ``loss(arrays)``."""
+    seen = np.flatnonzero(np.abs(grads["colors"]).sum(axis=(1, 2)) > 1e-6)
+    assert len(seen) >= 10
+    rng = np.random.default_rng(seed)
+    for name in names:
+        for i in rng.choice(seen, picks, replace=False):
+            for idx in np.ndindex(params[name].shape[1:]):
+                moved_plus, moved_minus = dict(params), dict(params)
+                moved_plus[name], moved_minus[name] = params[name].copy(), params[name].copy()
+                moved_plus[name][(i, *idx)] += h
+                moved_minus[name][(i, *idx)] -= h
+                numeric = (loss(moved_plus) - loss(moved_minus)) / (2 * h)
+                scale = np.abs(grads[name]).max()
+                assert grads[name][(i, *idx)] == pytest.approx(numeric, abs=1e-4 * scale), (name, i, idx)
+
+
 def test_warped_step_gradients_match_finite_differences():
     runtime.init()
     frame, depth = targets(5)
@@ -394,19 +413,7 @@ def test_warped_step_gradients_match_finite_differences():
             minus = loss(**{which: (D_START if which == "d_start" else D_END) - h * e})
             numeric.append((plus - minus) / (2 * h))
         np.testing.assert_allclose(analytic, numeric, rtol=1e-4, atol=1e-6 * np.abs(numeric).max(), err_msg=which)
-    rng = np.random.default_rng(1)
-    seen = np.flatnonzero(np.abs(grads["colors"]).sum(axis=(1, 2)) > 1e-6)
-    assert len(seen) >= 10
-    for name in ("means", "colors", "opacity_logits"):
-        for i in rng.choice(seen, 4, replace=False):
-            for idx in np.ndindex(params[name].shape[1:]):
-                moved_plus, moved_minus = dict(params), dict(params)
-                moved_plus[name], moved_minus[name] = params[name].copy(), params[name].copy()
-                moved_plus[name][(i, *idx)] += h
-                moved_minus[name][(i, *idx)] -= h
-                numeric = (loss(moved_plus) - loss(moved_minus)) / (2 * h)
-                scale = np.abs(grads[name]).max()
-                assert grads[name][(i, *idx)] == pytest.approx(numeric, abs=1e-4 * scale), (name, i, idx)
+    check_gaussian_gradients(grads, params, loss, ("means", "colors", "opacity_logits"), picks=4, seed=1)
 
 
 ROLL_STEP = np.array([0.02, -0.015, 0.005, 0.03, -0.02, 0.025])
@@ -439,16 +446,7 @@ def test_rolling_shutter_step_gradients_match_finite_differences():
         numeric = np.array([(loss(**{which: value + h * e}) - loss(**{which: value - h * e})) / (2 * h)
                             for e in np.eye(6)])
         np.testing.assert_allclose(analytic, numeric, rtol=1e-4, atol=1e-6 * np.abs(numeric).max(), err_msg=which)
-    seen = np.flatnonzero(np.abs(grads["colors"]).sum(axis=(1, 2)) > 1e-6)
-    for name in ("means", "colors"):
-        for i in np.random.default_rng(2).choice(seen, 3, replace=False):
-            for idx in np.ndindex(params[name].shape[1:]):
-                moved_plus, moved_minus = dict(params), dict(params)
-                moved_plus[name], moved_minus[name] = params[name].copy(), params[name].copy()
-                moved_plus[name][(i, *idx)] += h
-                moved_minus[name][(i, *idx)] -= h
-                numeric = (loss(moved_plus) - loss(moved_minus)) / (2 * h)
-                assert grads[name][(i, *idx)] == pytest.approx(numeric, abs=1e-4 * np.abs(grads[name]).max())
+    check_gaussian_gradients(grads, params, loss, ("means", "colors"), picks=3, seed=2)
 
 
 def test_a_rolling_shutter_needs_warped_views():
