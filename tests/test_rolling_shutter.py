@@ -156,3 +156,33 @@ def test_the_fast_preset_models_a_known_cameras_rolling_shutter(tmp_path, camera
     assert result.readout_ms == expected
     assert (f"rolling shutter {expected:g} ms" in result.summary()) == (expected > 0)
     assert (out / "deblur" / "renders" / "as_read").is_dir() == (expected > 0)
+
+
+def test_a_pose_jump_between_neighbours_widens_the_anchors_margin_by_a_bounded_amount(tmp_path):
+    """A frame whose neighbours lie 20 m apart (a tracking failure) would skew its rows by hundreds of pixels:
+    the anchors' margin grows by at most ``MAX_SKEW_MARGIN_SCALE`` x ``warp_px``."""
+    from taichi_gs.stages import deblur
+    from taichi_gs.standins import synthetic_refine_outputs
+
+    clip = synth.SynthConfig(width=48, height=32, frames=4, trajectory="turn", blur="extreme", seed=2)
+    sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.1)
+    trajectory = out / "refine" / "trajectory.txt"
+    lines = trajectory.read_text().splitlines()
+    fields = lines[-1].split()
+    fields[1] = f"{float(fields[1]) + 20.0:.6f}"  # the last frame 20 m off
+    trajectory.write_text("\n".join(lines[:-1] + [" ".join(fields)]) + "\n")
+    margins = []
+    original = deblur.BlurScene
+
+    def recording(*args, **kwargs):
+        margins.append(kwargs.get("warp_margin", 0))
+        return original(*args, **kwargs)
+
+    config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, iterations=0, k=3, adaptive_k=False,
+                                 test_pose_iterations=0, holdout_every=0, keep_frame=False, readout_ms=30.0)
+    deblur.BlurScene = recording
+    try:
+        run_deblur(sequence, out, config)
+    finally:
+        deblur.BlurScene = original
+    assert margins[0] == deblur.warp_margin(config, deblur.MAX_SKEW_MARGIN_SCALE * config.warp_px)

@@ -462,6 +462,7 @@ def run_deblur(
         readout_ms = camera_readout_ms(sequence.source)
     shutter = readout_motions(poses, sequence.timestamps, readout_ms / 1000.0)
     skew = max(readout_px(m, frames.K[0, 0], z) for m, z in zip(shutter, frames.median_depth))
+    skew = min(skew, MAX_SKEW_MARGIN_SCALE * config.warp_px)  # a pose jump between neighbours must not blow it up
     model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced, warp_margin=warp_margin(config, skew))
     centres = poses[train, :3, 3]
     if config.init_max_px > 0:
@@ -592,6 +593,9 @@ def _exposure_sampling(d: np.ndarray, frames: _Frames, frame: int, config: Deblu
         if warped_views(k + 1, more) <= warped_views(k, anchors):
             return k + 1, more
     return k, anchors
+
+
+MAX_SKEW_MARGIN_SCALE = 4.0  # [ours] a rolling shutter widens the anchors' margin by at most this many warp_px
 
 
 def warp_margin(config: DeblurConfig, shutter_px: float = 0.0) -> int:
