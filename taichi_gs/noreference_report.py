@@ -92,8 +92,8 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     result["sourced_fraction"] = float(sourced.mean())
     if (deblur / "renders" / "as_read").is_dir():
         result["protocol"] += ("; a rolling shutter (stage 3's readout_ms): renders scored against held-out frames are "
-                               "read along its rows (renders/as_read: each row at its own pose), the gradient energy and "
-                               "dark holes are the global-shutter sharp render's")
+                               "read along its rows (renders/as_read: each row at its own pose), and so are the dark holes "
+                               "(a pixel comparison with the frame); the gradient energy is the global-shutter sharp render's")
     if seen is not None:
         result["protocol"] += (f"; every figure over the {100 * sourced.mean():.1f}% of pixels the camera saw (the "
                                "undistorted frame's border without a source pixel left out)")
@@ -116,7 +116,7 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
             energy = gradient_energy(frame, mask=seen)
             values = {"reblur_psnr_db": _psnr(reblurred, frame, seen), "reblur_ssim": _ssim(reblurred, frame, seen),
                       "gradient_energy_ratio": gradient_energy(sharp, mask=seen) / max(energy, 1e-12),
-                      "dark_hole_fraction": dark_hole_fraction(sharp, frame, mask=seen)}
+                      "dark_hole_fraction": dark_hole_fraction(as_read, frame, mask=seen)}
             values.update({key: lengths[i] for key, lengths in streaks.items()})
             if sequence.sharp_paths is not None:
                 values["ground_truth_gradient_energy_ratio"] = (gradient_energy(sequence.sharp(i), mask=seen)

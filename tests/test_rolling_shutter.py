@@ -80,9 +80,11 @@ def test_the_re_blurred_renders_read_their_rows_along_the_readout(tmp_path):
 
 def test_held_out_frames_are_scored_against_the_sharp_render_as_the_shutter_reads_it(tmp_path):
     """With a readout, stage 3 writes renders/as_read/ (the sharp render with each row at its own pose: the
-    middle rows are the sharp render's, the top and bottom rows moved) and eval scores the held-out frames
-    against it; a rerun without a readout removes it, and eval goes back to the sharp render."""
+    middle rows are the sharp render's, the top and bottom rows moved) and eval scores the held-out frames and
+    the dark holes against it, the sharpness on the global-shutter render; a rerun without a readout removes it,
+    and eval goes back to the sharp render."""
     from taichi_gs.io.sequence import read_color
+    from taichi_gs.noreference import dark_hole_fraction, gradient_energy
     from taichi_gs.noreference_report import _psnr, no_reference_metrics
     from taichi_gs.standins import synthetic_refine_outputs
 
@@ -101,6 +103,9 @@ def test_held_out_frames_are_scored_against_the_sharp_render_as_the_shutter_read
             sharp = read_color(renders / "sharp" / f"{name}.png")
             scored = read_color(renders / ("as_read" if readout else "sharp") / f"{name}.png")
             assert view["held_out_psnr_db"] == pytest.approx(_psnr(scored, frame, None), abs=1e-9)
+            assert view["dark_hole_fraction"] == pytest.approx(dark_hole_fraction(scored, frame), abs=1e-12)
+            assert view["gradient_energy_ratio"] == pytest.approx(
+                gradient_energy(sharp) / gradient_energy(frame), rel=1e-9)
             if readout:
                 rows = np.abs(scored - sharp).mean(axis=(1, 2))
                 assert rows[23:25].mean() < 0.03 and rows[:4].mean() > 5 * rows[23:25].mean()
