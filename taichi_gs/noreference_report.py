@@ -90,7 +90,8 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     sourced = sequence.sourced_pixels()
     seen = None if sourced.all() else sourced
     result["sourced_fraction"] = float(sourced.mean())
-    if (deblur / "renders" / "as_read").is_dir():
+    rolling = (deblur / "renders" / "as_read").is_dir()  # stage 3 modelled a rolling shutter
+    if rolling:
         result["protocol"] += ("; a rolling shutter (stage 3's readout_ms): renders scored against held-out frames are "
                                "read along its rows (renders/as_read: each row at its own pose), and so are the dark holes "
                                "(a pixel comparison with the frame); the gradient energy is the global-shutter sharp render's")
@@ -110,8 +111,7 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
             name = sequence.names[i]
             frame = sequence.color(i)
             sharp = read_color(deblur / "renders" / "sharp" / f"{name}.png")
-            as_read_path = deblur / "renders" / "as_read" / f"{name}.png"  # a rolling shutter's (stage 3)
-            as_read = read_color(as_read_path) if as_read_path.is_file() else sharp
+            as_read = read_color(deblur / "renders" / "as_read" / f"{name}.png") if rolling else sharp
             reblurred = read_color(deblur / "renders" / "reblurred" / f"{name}.png")
             energy = gradient_energy(frame, mask=seen)
             values = {"reblur_psnr_db": _psnr(reblurred, frame, seen), "reblur_ssim": _ssim(reblurred, frame, seen),
@@ -145,7 +145,7 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
     result["per_view"] = sorted(per_view, key=lambda view: view["index"])
     if grid_rows:
         image_grid(Path(run_dir) / "report" / "no_reference_views.png", grid_rows,
-                   ["held-out frame", "sharp render" + (", as read" if (deblur / "renders" / "as_read").is_dir() else ""),
+                   ["held-out frame", "sharp render" + (", as read" if rolling else ""),
                     "re-blurred render", "warped neighbour"], grid_titles)
     return result
 

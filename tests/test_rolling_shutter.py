@@ -163,7 +163,7 @@ def test_the_fast_preset_models_a_known_cameras_rolling_shutter(tmp_path, camera
     assert (out / "deblur" / "renders" / "as_read").is_dir() == (expected > 0)
 
 
-def test_a_pose_jump_between_neighbours_widens_the_anchors_margin_by_a_bounded_amount(tmp_path):
+def test_a_pose_jump_between_neighbours_widens_the_anchors_margin_by_a_bounded_amount(tmp_path, monkeypatch):
     """A frame whose neighbours lie 20 m apart (a tracking failure) would skew its rows by hundreds of pixels:
     the anchors' margin grows by at most ``MAX_SKEW_MARGIN_SCALE`` x ``warp_px``."""
     from taichi_gs.stages import deblur
@@ -183,11 +183,8 @@ def test_a_pose_jump_between_neighbours_widens_the_anchors_margin_by_a_bounded_a
         margins.append(kwargs.get("warp_margin", 0))
         return original(*args, **kwargs)
 
+    monkeypatch.setattr(deblur, "BlurScene", recording)
     config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, iterations=0, k=3, adaptive_k=False,
                                  test_pose_iterations=0, holdout_every=0, keep_frame=False, readout_ms=30.0)
-    deblur.BlurScene = recording
-    try:
-        run_deblur(sequence, out, config)
-    finally:
-        deblur.BlurScene = original
+    run_deblur(sequence, out, config)
     assert margins[0] == deblur.warp_margin(config, deblur.MAX_SKEW_MARGIN_SCALE * config.warp_px)

@@ -460,10 +460,9 @@ def run_deblur(
     readout_ms = config.readout_ms
     if readout_ms == 0 and config.camera_readout and config.warp_views:
         readout_ms = camera_readout_ms(sequence.source)
-    shutter = readout_motions(poses, sequence.timestamps, readout_ms / 1000.0)
-    skew = max(readout_px(m, frames.K[0, 0], z) for m, z in zip(shutter, frames.median_depth))
-    skew = min(skew, MAX_SKEW_MARGIN_SCALE * config.warp_px)  # a pose jump between neighbours must not blow it up
-    model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced, warp_margin=warp_margin(config, skew))
+    shutter = _Shutter(readout_motions(poses, sequence.timestamps, readout_ms / 1000.0), frames.median_depth)
+    model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced,
+                      warp_margin=warp_margin(config, shutter.skew_px(frames.K[0, 0], config)))
     centres = poses[train, :3, 3]
     if config.init_max_px > 0:
         limit = footprint_limit(model.arrays()["means"], centres, frames.K[0, 0], config.init_max_px)
@@ -508,7 +507,7 @@ def run_deblur(
                           k, config.lambda_dssim, config.lambda_depth, rates,
                           colours[frame] if config.colour_affine else None,
                           anchors=anchors, fallback_depth=frames.median_depth[frame],
-                          observe=density.observes(it + 1), readout_motion=shutter[frame])
+                          observe=density.observes(it + 1), readout_motion=shutter.motions[frame])
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
@@ -554,7 +553,7 @@ def run_deblur(
         if config.test_fit_from_neighbours:
             offsets[frame] = offsets[frame] + neighbours_mid_shift(offsets, train, frame)
         offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
-                                                               frame, config, shutter[frame])
+                                                               frame, config, shutter.motions[frame])
     warnings = _step_warnings(offsets, train, frames, config)
     splats, shift = model.splats(), None
     if config.keep_frame:
@@ -567,7 +566,7 @@ def run_deblur(
         warnings=warnings, readout_ms=readout_ms,
     )
     _write_outputs(stage_dir, sequence, splats, poses, offsets, result, config, sharpness,
-                   colours if config.colour_affine else None, shift, _Shutter(shutter, frames.median_depth))
+                   colours if config.colour_affine else None, shift, shutter)
     checkpoint_path.unlink(missing_ok=True)
     return result
 
@@ -769,11 +768,19 @@ def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, confi
 
 @dataclass(frozen=True)
 class _Shutter:
-    """[ours] Each frame's rolling-shutter readout motion (N, 6; zeros: a global shutter) and the median sensor
-    depth (N,) where a re-blurred render's rows are warped from a surface-less pixel."""
+    """[ours] Each frame's rolling-shutter readout motion (N, 6; zeros: a global shutter) and its median sensor
+    depth (N,): where the skew is measured, and where a re-blurred render's rows are warped from a surface-less
+    pixel."""
 
     motions: np.ndarray
     median_depth: np.ndarray
+
+    def skew_px(self, focal: float, config: DeblurConfig) -> float:
+        """The most any frame's first or last row lies from its pose on the image (:func:`readout_px`, pixels at
+        focal ``focal``), at most ``MAX_SKEW_MARGIN_SCALE`` x ``warp_px``: a pose jump between neighbours must not
+        blow up the anchors' margin."""
+        skew = max(readout_px(m, focal, z) for m, z in zip(self.motions, self.median_depth))
+        return min(skew, MAX_SKEW_MARGIN_SCALE * config.warp_px)
 
 
 def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
@@ -821,7 +828,7 @@ def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     first = sequence.color(0)
     K = sequence.K()
     shutil.rmtree(stage_dir / "renders" / "as_read", ignore_errors=True)  # an earlier run's, with another readout
-    skew = max(readout_px(m, K[0, 0], z) for m, z in zip(shutter.motions, shutter.median_depth))
+    skew = shutter.skew_px(K[0, 0], config)
     full = BlurScene(splats, K, first.shape[1], first.shape[0], warp_margin=math.ceil(skew) + 2 if skew > 0 else 0)
     scale = sequence.intrinsics.depth_scale
     rows, names = [], []
