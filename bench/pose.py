@@ -63,14 +63,17 @@ from taichi_gs.geometry import backproject, invert
 from taichi_gs.icp import align, depth_cloud, rgbd_odometry
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.pose_verify import frame_view, verify
+from taichi_gs.stages.pose import PRESETS as POSE_PRESETS
 from taichi_gs.stages.pose import PoseConfig, chain_poses, icp_levels, run_pose
 
 SEVEN_SCENES = Path("/work/shared/data/7scenes_redkitchen_000-249")
 BREAK_RATIO = 3.0  # a reference pair scoring above this x its median is a break (see reference_breaks)
 METHOD_ONLY = {"verify": False, "rgbd_refine": False, "icp_from_prior": False, "pose_graph": False, "icp_max_points": 80000,
-               "flow_finest_width_px": 0}
+               "flow_finest_width_px": 0, "camera_readout": False}
 OURS = {
     "ours": {},
+    "ours global shutter": {"camera_readout": False},
+    "ours readout 25 ms": {"readout_ms": 25.0},
     "ours no flow check": {"verify_flow_weight": 0.0},
     "ours no joint solve": {"joint_solve": False},
     "ours no graph joint": {"graph_joint": False},
@@ -90,14 +93,17 @@ DERIVED = ("ours no graph", "cand:flow", "cand:joint", "cand:icp", "cand:rgbd-ic
 def run_ours(sequence, overrides: dict, work: Path, pair_caches: dict[str, Path]):
     """Stage 1 with ``overrides``; a variant whose pairs are the same as an earlier method's on this sequence
     (the same ``PoseConfig.pair_key``, e.g. one that changes only the graph) starts from that method's pair
-    cache, ``pair_caches`` (pair key -> folder), and reports those pairs' own seconds plus its graph's."""
-    config = dataclasses.replace(PoseConfig(), **overrides)
-    pairs = work / "pose" / "pairs"
-    earlier = pair_caches.setdefault(config.pair_key(), pairs)
-    if earlier != pairs and earlier.is_dir() and not pairs.exists():
-        shutil.copytree(earlier, pairs)
+    caches, ``pair_caches`` (pair key -> pose folder), and reports those pairs' own seconds plus its graph's (and,
+    with a rolling shutter, the pairs as read)."""
+    config = dataclasses.replace(POSE_PRESETS["fast"], **overrides)
+    pose_dir = work / "pose"
+    earlier = pair_caches.setdefault(config.pair_key(), pose_dir)
+    for cache in ("pairs", "pairs_as_read"):  # de-skewed pairs are keyed by the readout and its motions too
+        if earlier != pose_dir and (earlier / cache).is_dir() and not (pose_dir / cache).exists():
+            shutil.copytree(earlier / cache, pose_dir / cache)
     result = run_pose(sequence, work, config)  # pairs are cached: time = pairs' own seconds + the graph's
-    seconds = float(np.mean([p["seconds"] for p in result.pairs])) + result.graph_seconds / (len(sequence) - 1)
+    seconds = (float(np.mean([p["seconds"] for p in result.pairs]))
+               + (result.pairs_as_read_seconds + result.graph_seconds) / (len(sequence) - 1))
     weak = sum(p["weak"] for p in result.pairs)
     pruned = sum(e["pruned"] for e in result.edges)
     extra = f"{weak} / {pruned} of {len(result.edges)}" if result.edges else f"{weak} / -"
@@ -359,6 +365,8 @@ def main() -> None:
     parser.add_argument("--trajectories", default="handheld,turn,translation")
     parser.add_argument("--scenes", default="room,office,plain,corridor", help="synth scene kinds")
     parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--synth-readout-ms", type=float, default=0.0,
+                        help="synth sequences read through a rolling shutter of this many ms (0: a global shutter)")
     parser.add_argument("--real-every", default="1,2,3", help="7-Scenes frame steps; empty: no real data")
     parser.add_argument("--real-scale", type=float, default=0.5)
     parser.add_argument("--methods", default=",".join([*OURS, *DERIVED, "O3D hybrid", "O3D ICP", "O3D dense SLAM", "DIS RANSAC"]))
@@ -448,11 +456,12 @@ def sequences(args, root: Path):
     grid = [(scene, trajectory, int(seed)) for scene in args.scenes.split(",") if scene
             for trajectory in args.trajectories.split(",") for seed in args.seeds.split(",")]
     for scene, trajectory, seed in grid:
-        folder = root / f"{scene}_{trajectory}_{w}x{h}_s{seed}"
+        shutter = f"_rs{args.synth_readout_ms:g}" if args.synth_readout_ms else ""
+        folder = root / f"{scene}_{trajectory}_{w}x{h}_s{seed}{shutter}"
         if not (folder / "frames.txt").is_file():
             generate(SynthConfig(width=w, height=h, frames=args.frames, trajectory=trajectory, scene=scene,
-                                 blur="extreme", seed=seed), folder)
-        yield f"{scene} {trajectory} {w}x{h} seed {seed}", load_sequence(folder), True
+                                 blur="extreme", seed=seed, readout_ms=args.synth_readout_ms), folder)
+        yield f"{scene} {trajectory} {w}x{h} seed {seed}{shutter.replace('_rs', ' readout ')}", load_sequence(folder), True
     for every in (int(e) for e in args.real_every.split(",") if e):
         yield f"7-Scenes every {every} x{args.real_scale:g}", load_sequence(
             SEVEN_SCENES, camera="shipped", every=every, count=args.frames, scale=args.real_scale), False

@@ -290,6 +290,15 @@ CountOption = Annotated[int, typer.Option("--count", min=0, help="Keep this many
 ProfileOption = Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md: wall and "
                                           "CPU seconds per stage and per kind of work (flow, ICP, renders, losses, ...).")]
 ScaleOption = Annotated[float, typer.Option("--scale", help="Read frames at S times their width and height (0.5: half).")]
+READOUT_STAGES = ("pose", "refine", "deblur")  # the sections a rolling shutter's --readout-ms sets
+ReadoutOption = Annotated[Optional[float], typer.Option("--readout-ms", min=0.0, help="Rolling shutter: the camera reads its rows top to bottom over this many ms (0: a global shutter; default: the preset's, which in fast is 25 for TUM fr1 and 7-Scenes (Kinect v1) and 0 otherwise).")]
+
+
+def with_readout(config, readout_ms: float | None):
+    """``config`` with the user's ``--readout-ms``, which (0 included) stands over a known camera's readout."""
+    if readout_ms is None:
+        return config
+    return dataclasses.replace(config, readout_ms=readout_ms, camera_readout=False)
 
 
 def _open_input(folder: Path, fx, fy, cx, cy, depth_scale, format: str | None, camera: str | None, every: int,
@@ -314,15 +323,18 @@ def pose(
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
     first: FirstOption = 0, count: CountOption = 0,
+    readout_ms: ReadoutOption = None,
     profile: ProfileOption = False,
 ) -> None:
     """Stage 1: relative poses from optical flow and depth, refined by ICP, chained; fused point cloud."""
     from . import pipeline
     from .io.lock import output_lock
     from .pipeline import check_run_input, resolve_sections, write_run_info
+    from .validation import validate_sections
 
     _check_output_folder(folder, out)
-    config = resolve_sections(preset.value, config_file, only=("pose",))["pose"]
+    config = with_readout(resolve_sections(preset.value, config_file, only=("pose",))["pose"], readout_ms)
+    validate_sections({"pose": config})
     if flow_dir is not None:
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
     sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
@@ -400,15 +412,19 @@ def reconstruct(
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
     first: FirstOption = 0, count: CountOption = 0,
+    readout_ms: ReadoutOption = None,
     profile: ProfileOption = False,
 ) -> None:
     """All three stages end to end; a rerun skips finished stages and resumes an interrupted one."""
     from .io.lock import output_lock
     from .pipeline import reconstruct as run_all
     from .pipeline import resolve_sections
+    from .validation import validate_sections
 
     _check_output_folder(folder, out)
-    sections = resolve_sections(preset.value, config_file)
+    sections = {name: with_readout(section, readout_ms) if name in READOUT_STAGES else section
+                for name, section in resolve_sections(preset.value, config_file).items()}
+    validate_sections(sections)
     sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
                            trust_depth_scale, first, count)
     sequence.check_all()
@@ -498,7 +514,7 @@ def deblur(
     config_file: ConfigOption = None,
     k: Annotated[Optional[int], typer.Option("--k", min=1, help="Virtual sharp views per exposure (default: the preset's).")] = None,
     holdout: Annotated[Optional[str], typer.Option(metavar="N|none|sharpest", help="Hold out every N-th frame as a test view, 'none', or 'sharpest' (the sharpest of every N frames; for real data).")] = None,
-    readout_ms: Annotated[Optional[float], typer.Option(min=0.0, help="Rolling shutter: the colour camera reads its rows top to bottom over this many ms (0: a global shutter; default: the preset's, which in fast is 25 for TUM fr1 and 7-Scenes (Kinect v1) and 0 otherwise).")] = None,
+    readout_ms: ReadoutOption = None,
     profile: ProfileOption = False,
 ) -> None:
     """Stage 3: train sharp Gaussians and each frame's exposure start/end poses through the k-view blur model."""
@@ -507,10 +523,8 @@ def deblur(
     from .pipeline import open_run_sequence, resolve_sections
     from .validation import validate_sections
 
-    config = resolve_sections(preset.value, config_file, only=("deblur",))["deblur"]
+    config = with_readout(resolve_sections(preset.value, config_file, only=("deblur",))["deblur"], readout_ms)
     changes: dict[str, int | str | float | bool] = {} if k is None else {"k": k}
-    if readout_ms is not None:  # the user's value, 0 included, stands over a known camera's
-        changes.update(readout_ms=readout_ms, camera_readout=False)
     if holdout is not None and holdout.strip().lower() == "sharpest":
         changes["holdout"] = "sharpest"
     elif holdout is not None:

@@ -2,13 +2,18 @@
 readout time, so that each row sees the scene from where the camera was when that row was read. Kinect v1's
 colour camera is one (BENCHMARKS, "A rolling shutter in TUM's Kinect frames"). Stage 3 models it by warping
 each virtual view's rows from global-shutter renders at the row's own pose (``deblur_model``, ``kernels.warp``);
-the camera's motion over the readout comes from the trajectory (the neighbouring frames' poses)."""
+stages 1 and 2 de-skew the frames instead: each frame's colour and depth moved to the pose of its middle row
+(:class:`DeskewedSequence`). The camera's motion over the readout comes from the trajectory (the neighbouring
+frames' poses)."""
 
 from __future__ import annotations
 
+from typing import Any
+
+import cv2
 import numpy as np
 
-from .geometry import adjoint, invert, se3_exp, se3_log
+from .geometry import adjoint, invert, median_depths, se3_exp, se3_log
 
 # Readouts (ms) of the colour cameras of known (format, camera) readings: Kinect v1's, 25 ms, the best of 0, 15, 25
 # and 35 ms on a TUM fr1 stretch and near bench/rolling_shutter_readout.py's estimates (BENCHMARKS.md, "A rolling
@@ -56,3 +61,95 @@ def camera_readout_ms(source: dict) -> float:
     """The readout (ms) of a sequence's camera where its reading names a known one (``Sequence.source``: format
     and camera; :data:`KNOWN_READOUT_MS`), else 0."""
     return KNOWN_READOUT_MS.get((source.get("format"), source.get("camera")), 0.0)
+
+
+def stage_readout_ms(readout_ms: float, camera_readout: bool, source: dict) -> float:
+    """A stage's readout (ms): its own ``readout_ms`` when set, else with ``camera_readout`` the known camera's
+    (:func:`camera_readout_ms`), else 0."""
+    if readout_ms == 0 and camera_readout:
+        return camera_readout_ms(source)
+    return readout_ms
+
+
+# The most a frame's first or last row is moved when de-skewing, as a fraction of the image width (at the frame's
+# median depth; readout_px): a readout motion beyond it comes from a pose jump between neighbours, not from the
+# camera, and is scaled down to it. TUM fr1's fastest frames move 7 px of 640.
+MAX_DESKEW_WIDTH_FRACTION = 0.05
+
+
+def deskewing_motions(sequence: Any, poses: np.ndarray, readout_ms: float) -> tuple[np.ndarray, float]:
+    """Each frame's motion over a readout of ``readout_ms`` from ``poses`` (:func:`readout_motions`), scaled down
+    where it would move rows by more than :data:`MAX_DESKEW_WIDTH_FRACTION` of the width, and the largest
+    :func:`readout_px` of any frame after that (pixels, at its median depth)."""
+    motions = readout_motions(poses, sequence.timestamps, readout_ms / 1000.0)
+    K = sequence.K()
+    limit = MAX_DESKEW_WIDTH_FRACTION * sequence.intrinsics.width
+    depths = median_depths([sequence.depth(i) for i in range(len(sequence))])
+    skews = np.array([readout_px(m, K[0, 0], z) for m, z in zip(motions, depths)])
+    motions *= np.minimum(1.0, limit / np.maximum(skews, 1e-12))[:, None]
+    return motions, float(min(skews.max(initial=0.0), limit))
+
+
+# De-skewing inverts the rows' displacement by fixed-point steps; displacements are a few pixels and smooth
+# along the image, so a few steps settle them to well under a hundredth of a pixel.
+DESKEW_STEPS = 4
+
+
+def deskew_maps(depth: np.ndarray, K: np.ndarray, readout_motion: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each pixel of a frame seen from its middle row's pose (the frame's pose) was read: ``(map_u,
+    map_v)`` (H, W float32, for ``cv2.remap``) and ``depth_at_pose`` (H, W float32: each read pixel's depth
+    from the frame's pose, 0 where the reading has none). Pixels without depth move as if at the median
+    depth (the readout's rotation, which dominates, moves them alike at any depth)."""
+    height, width = depth.shape
+    rows = shutter_rows(readout_motion, height)
+    valid = np.isfinite(depth) & (depth > 0)
+    fill = float(np.median(depth[valid])) if valid.any() else 1.0
+    z = np.where(valid, depth, fill).astype(np.float64)
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    read = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1)
+    at_pose = np.einsum("hij,hwj->hwi", rows[:, :3, :3], read) + rows[:, None, :3, 3]
+    shift_u = (fx * at_pose[..., 0] / at_pose[..., 2] + cx - u).astype(np.float32)
+    shift_v = (fy * at_pose[..., 1] / at_pose[..., 2] + cy - v).astype(np.float32)
+    # the pixel read at s lands at s + shift(s); find s for every landing pixel x: s = x - shift(s)
+    map_u, map_v = u.astype(np.float32), v.astype(np.float32)
+    for _ in range(DESKEW_STEPS):
+        moved_u = cv2.remap(shift_u, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        moved_v = cv2.remap(shift_v, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        map_u, map_v = (u - moved_u).astype(np.float32), (v - moved_v).astype(np.float32)
+    depth_at_pose = np.where(valid, at_pose[..., 2], 0.0).astype(np.float32)
+    return map_u, map_v, depth_at_pose
+
+
+class DeskewedSequence:
+    """[ours] A sequence whose frames are seen from their poses as a global shutter would see them: colour and
+    depth of each frame moved from the pose at which each row was read (its readout motion, :func:`shutter_rows`)
+    to the frame's pose. Colour is resampled bilinearly, depth by nearest pixel (its values taken from the frame's
+    pose); pixels the readout brought in from outside the frame have no depth and repeat the edge's colour.
+    Everything else is the wrapped sequence's; frames with no motion are its own."""
+
+    def __init__(self, sequence: Any, readout_motions: np.ndarray):
+        self.sequence = sequence
+        self.readout_motions = np.asarray(readout_motions, dtype=np.float64)
+        if len(self.readout_motions) != len(sequence):
+            raise ValueError(f"{len(self.readout_motions)} readout motions for {len(sequence)} frames")
+
+    def __len__(self) -> int:
+        return len(self.sequence)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.sequence, name)
+
+    def color(self, i: int) -> np.ndarray:
+        color = self.sequence.color(i)
+        if not self.readout_motions[i].any():
+            return color
+        map_u, map_v, _ = deskew_maps(self.sequence.depth(i), self.sequence.K(), self.readout_motions[i])
+        return cv2.remap(color, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def depth(self, i: int) -> np.ndarray:
+        depth = self.sequence.depth(i)
+        if not self.readout_motions[i].any():
+            return depth
+        map_u, map_v, depth_at_pose = deskew_maps(depth, self.sequence.K(), self.readout_motions[i])
+        return cv2.remap(depth_at_pose, map_u, map_v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)

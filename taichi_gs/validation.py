@@ -72,7 +72,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "graph_weak_weight": NON_NEGATIVE, "graph_info_voxel_m": POSITIVE, "graph_info_max_points": OPTIONAL_COUNT,
         "graph_info_distance_m": POSITIVE, "graph_near_tie_mm": NON_NEGATIVE,
         "loop_min_gap": _at_least(2), "loop_every": COUNT, "loop_max_distance_m": POSITIVE,
-        "loop_max_angle_deg": _within(0, 180), "threads": OPTIONAL_COUNT,
+        "loop_max_angle_deg": _within(0, 180), "threads": OPTIONAL_COUNT, "readout_ms": NON_NEGATIVE,
     },
     "refine": {
         "voxel_size": NON_NEGATIVE, "initial_opacity": _within(0.01, 0.99), "iterations_per_frame": OPTIONAL_COUNT,
@@ -84,7 +84,7 @@ FIELD_RULES: dict[str, dict[str, tuple[Check, str]]] = {
         "pose_prior_weight": NON_NEGATIVE, "pose_prior_sigma_m": POSITIVE, "pose_prior_sigma_deg": POSITIVE,
         "converge_window_per_frame": OPTIONAL_COUNT, "converge_rel_tol": NON_NEGATIVE,
         "converge_pose_m": NON_NEGATIVE, "converge_pose_deg": NON_NEGATIVE,
-        "accept_neighbours": OPTIONAL_COUNT,
+        "accept_neighbours": OPTIONAL_COUNT, "readout_ms": NON_NEGATIVE,
     },
     "deblur": {
         "k": COUNT, "holdout_every": ((lambda v: v == 0 or v >= 2), "0 (no test views) or at least 2"),

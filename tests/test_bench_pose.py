@@ -68,14 +68,15 @@ def test_a_variant_that_changes_only_the_graph_starts_from_the_earlier_pairs(tmp
         found.append(sorted(p.name for p in pairs.glob("*.json")) if pairs.is_dir() else [])
         pairs.mkdir(parents=True, exist_ok=True)
         (pairs / f"{config.pair_key()}.json").write_text("{}")
-        return SimpleNamespace(pairs=[{"seconds": 1.0, "weak": False}], edges=[], graph_seconds=0.5)
+        return SimpleNamespace(pairs=[{"seconds": 1.0, "weak": False}], edges=[], graph_seconds=0.5,
+                               pairs_as_read_seconds=0.0)
 
     monkeypatch.setattr(bench_pose, "run_pose", fake_run_pose)
     caches = {}
     for method in ("ours", "ours no long edges", "ours no flow check", "ours long edges every frame"):
         _, seconds, _ = run_ours([0, 1], OURS[method], tmp_path / method, caches)
         assert seconds == 1.5  # the pairs' own seconds and the graph's
-    ours_pairs = [f"{bench_pose.PoseConfig().pair_key()}.json"]
+    ours_pairs = [f"{bench_pose.POSE_PRESETS['fast'].pair_key()}.json"]
     assert found == [[], ours_pairs, [], ours_pairs]  # the flow-check variant changes the pairs: its own cache
 
 

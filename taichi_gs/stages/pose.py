@@ -3,8 +3,9 @@ point-to-plane ICP, chained into camera-to-world poses; all frames fused into on
 
 Outputs in OUT/pose/: ``trajectory.txt`` (TUM, camera-to-world, first frame = identity),
 ``points.ply`` (voxel-downsampled coloured cloud), ``pairs.json`` (per-pair diagnostics and a
-summary), and ``pairs/NNNNNN.json`` (per-pair cache, so a rerun skips finished pairs); the pipeline adds
-``config.toml``.
+summary), and ``pairs/NNNNNN.json`` (per-pair cache, so a rerun skips finished pairs; with a rolling shutter
+``pairs_as_read/`` caches the pairs of the frames as read, and ``pairs/`` those of the de-skewed frames); the
+pipeline adds ``config.toml``.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
 from ..machine import available_cores
 from ..pose_graph import Edge, optimise, rechoose
+from ..rolling_shutter import DeskewedSequence, deskewing_motions, stage_readout_ms
 from ..pose_verify import (FlowCheck, FrameView, Verification, VerifySettings, depth_normals, flow_disagreement,
                            frame_view, verify)
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
@@ -185,6 +187,14 @@ class PoseConfig:
     # skip edges, loop closures and long edges, satisfy best, and the graph is solved again
     graph_near_ties: bool = True
     graph_near_tie_mm: float = 2.0
+    # [ours] a rolling shutter: the colour and depth cameras read their rows top to bottom over readout_ms
+    # milliseconds. The pairs are estimated on the frames as read, each frame's motion over its readout taken
+    # from them (rolling_shutter.readout_motions), every frame de-skewed to its middle row's pose
+    # (rolling_shutter.DeskewedSequence), and the pairs, the graph and the fused cloud computed again on the
+    # de-skewed frames: about 1.4x the stage's time. 0: a global shutter. camera_readout: with readout_ms 0, the
+    # readout of a camera the sequence's reading names (rolling_shutter.KNOWN_READOUT_MS; on in the fast preset)
+    readout_ms: float = 0.0
+    camera_readout: bool = False
     # Fused cloud
     voxel_size_m: float = 0.02  # s: the fused cloud's voxel; stage 2 gives each Gaussian scale s/2
     # [ours] threads (0: one per core this process may run on, at most DEFAULT_MAX_THREADS). The next pairs'
@@ -231,7 +241,7 @@ class PoseConfig:
 
 
 # Fields that do not change a pair's own result (excluded from the pair cache's key).
-_NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "graph_joint",
+_NOT_PAIR_FIELDS = {"voxel_size_m", "readout_ms", "camera_readout", "pose_graph", "graph_skips", "graph_icp", "graph_joint",
                     "graph_rgbd_iterations", "graph_max_score_ratio", "graph_weak_weight", "graph_info_voxel_m",
                     "graph_info_max_points",
                     "graph_info_distance_m", "loop_closures", "loop_min_gap", "loop_every", "loop_max_distance_m",
@@ -244,8 +254,8 @@ _NOT_PAIR_FIELDS = {"voxel_size_m", "pose_graph", "graph_skips", "graph_icp", "g
 METHOD_ONLY = PoseConfig(verify=False, rgbd_refine=False, icp_from_prior=False, pose_graph=False, icp_max_points=80000,
                          flow_finest_width_px=0)
 
-# fast: ICP on at most icp_max_points points per frame; paper: on every point.
-PRESETS = {"fast": PoseConfig(), "paper": PoseConfig(icp_max_points=0)}
+# fast: ICP on at most icp_max_points points per frame, known cameras' rolling shutters; paper: on every point.
+PRESETS = {"fast": PoseConfig(camera_readout=True), "paper": PoseConfig(icp_max_points=0)}
 
 
 @dataclass
@@ -304,6 +314,8 @@ class PoseResult:
     paths: dict[str, Path] = field(default_factory=dict)
     edges: list[dict] = field(default_factory=list)  # pose-graph edges (empty without the graph)
     graph_seconds: float = 0.0  # extra edges and optimisation
+    rolling_shutter: dict | None = None  # readout_ms and skew_px of de-skewed frames (None: as read)
+    pairs_as_read_seconds: float = 0.0  # with a rolling shutter: the pairs of the frames as read, all together
 
     def summary(self) -> str:
         weak = sum(1 for p in self.pairs if p["weak"])
@@ -316,6 +328,9 @@ class PoseResult:
                            for e in self.edges)
             text += f"; pose graph: {len(self.edges)} edges ({loops} loop closures), {pruned} pruned"
             text += f", {rechosen} pairs re-chosen among near-ties" if rechosen else ""
+        if self.rolling_shutter:
+            text += (f"; frames de-skewed for a rolling shutter of {self.rolling_shutter['readout_ms']:g} ms (rows up "
+                     f"to {self.rolling_shutter['skew_px']:.1f} px from their frame's pose)")
         return text
 
 
@@ -814,58 +829,91 @@ def _information_cloud(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> 
 def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
              progress: Callable[[int, int, str], None] | None = None) -> PoseResult:
     """Stage 1 over a whole sequence, resuming from cached pairs; writes OUT/pose/ (see module doc).
-    ``progress(done, total, step)`` counts the pairs, then the pose graph's frames, then the frames fused into
-    the cloud (``step``: "pairs", "graph", "fused cloud")."""
+    ``progress(done, total, step)`` counts the pairs (first "pairs as read" with a rolling shutter), then the
+    pose graph's frames, then the frames fused into the cloud (``step``: "pairs", "graph", "fused cloud")."""
     n = len(sequence)
     if n < 2:
         raise InputError(getattr(sequence, "root", None), f"sequence has {n} frame(s)", "give at least two frames")
     pose_dir = Path(out_dir) / "pose"
-    pair_dir = pose_dir / "pairs"
-    pair_dir.mkdir(parents=True, exist_ok=True)
     K = sequence.intrinsics.K()
     key = config.pair_key()
-    frames = FrameCache(sequence, K, config)
-    provider = flow_provider(sequence, config, frames)
-    cached = [_load_pair(pair_dir / f"{k:06d}.json", key) for k in range(n - 1)]
-    steps = progress_steps(n, config)
+    readout_ms = pose_readout_ms(sequence, config)
+    steps = progress_steps(n, config, readout_ms)
 
     def progress_of(kind: str, offset: int) -> Callable[[int], None]:
         return (lambda done: progress(offset + done, steps, kind)) if progress is not None else (lambda done: None)
 
-    relatives: list[RelativePose] = []
-    threads = stage_threads(config)
-    with _workers(threads) as pool:
-        # the workers start the next pairs (two each) while this thread finishes one
-        started = _run_ahead(pool, [k for k, r in enumerate(cached) if r is None],
-                             functools.partial(_start_pair_of, frames, provider, K, config),
-                             ahead=2 * threads if threads > 1 else 0)
-        pairs_done, last = progress_of("pairs", 0), time.perf_counter()
-        for k, relative in enumerate(cached):
-            if relative is None:
-                prior = relatives[-1].transform if relatives else np.eye(4)
-                relative = _estimate_pair(frames, k, K, config, prior, next(started))
-                relative.seconds = time.perf_counter() - last  # the wall time it added, its work ahead overlapped
-                write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
-            relatives.append(relative)
-            pairs_done(k + 1)
-            last = time.perf_counter()
-
+    shutter: dict | None = None
+    as_read_seconds = 0.0
+    with _workers(stage_threads(config)) as pool:
+        if readout_ms > 0:  # [ours] the pairs as read give each frame's motion over its readout; de-skew, redo
+            as_read = _pair_estimates(sequence, FrameCache(sequence, K, config), pose_dir / "pairs_as_read", key,
+                                      config, pool, progress_of("pairs as read", 0))
+            motions, skew_px = deskewing_motions(sequence, chain_poses([r.transform for r in as_read]), readout_ms)
+            sequence = DeskewedSequence(sequence, motions)
+            key = _deskewed_pair_key(key, readout_ms, motions)
+            shutter = {"readout_ms": readout_ms, "skew_px": round(skew_px, 3)}
+            as_read_seconds = sum(r.seconds for r in as_read)
+        frames = FrameCache(sequence, K, config)
+        offset = n - 1 if readout_ms > 0 else 0
+        relatives = _pair_estimates(sequence, frames, pose_dir / "pairs", key, config, pool,
+                                    progress_of("pairs", offset))
         poses = chain_poses([r.transform for r in relatives])
         pairs = [_pair_record(k, sequence.names, r) for k, r in enumerate(relatives)]
         edges: list[Edge] = []
         graph_start = time.perf_counter()
         if config.pose_graph:
             poses, edges = refine_with_graph(sequence, relatives, poses, config, frames, pool,
-                                             on_frame=progress_of("graph", n - 1))
+                                             on_frame=progress_of("graph", offset + n - 1))
     result = PoseResult(poses, pairs, edges=[_edge_record(e) for e in edges],
-                        graph_seconds=time.perf_counter() - graph_start)
+                        graph_seconds=time.perf_counter() - graph_start, rolling_shutter=shutter,
+                        pairs_as_read_seconds=as_read_seconds)
     paths = {"trajectory": pose_dir / "trajectory.txt", "points": pose_dir / "points.ply", "pairs": pose_dir / "pairs.json"}
     write_tum(paths["trajectory"], np.asarray(sequence.timestamps), poses, header="taichi-gs stage 1, camera-to-world")
-    write_text(paths["pairs"], jsonout.dumps({"summary": result.summary(), "pairs": pairs, "edges": result.edges}, indent=1) + "\n")
+    record = {"summary": result.summary(), "pairs": pairs, "edges": result.edges}
+    if shutter is not None:
+        record["rolling_shutter"] = shutter
+    write_text(paths["pairs"], jsonout.dumps(record, indent=1) + "\n")
     points, colors = fuse_points(sequence, poses, config, on_frame=progress_of("fused cloud", steps - n))
     write_point_cloud(paths["points"], points, colors)
     result.paths = paths
     return result
+
+
+def _pair_estimates(sequence, frames: FrameCache, pair_dir: Path, key: str, config: PoseConfig, pool: Executor,
+                    on_pair: Callable[[int], None]) -> list[RelativePose]:
+    """Every pair (k, k+1) of ``frames``, each read from ``pair_dir`` when cached there under ``key``, else
+    estimated (the workers start the next pairs while this thread finishes one) and cached."""
+    pair_dir.mkdir(parents=True, exist_ok=True)
+    K = sequence.intrinsics.K()
+    cached = [_load_pair(pair_dir / f"{k:06d}.json", key) for k in range(len(sequence) - 1)]
+    threads = stage_threads(config)
+    started = _run_ahead(pool, [k for k, r in enumerate(cached) if r is None],
+                         functools.partial(_start_pair_of, frames, flow_provider(sequence, config, frames), K, config),
+                         ahead=2 * threads if threads > 1 else 0)
+    relatives: list[RelativePose] = []
+    last = time.perf_counter()
+    for k, relative in enumerate(cached):
+        if relative is None:
+            prior = relatives[-1].transform if relatives else np.eye(4)
+            relative = _estimate_pair(frames, k, K, config, prior, next(started))
+            relative.seconds = time.perf_counter() - last  # the wall time it added, its work ahead overlapped
+            write_text(pair_dir / f"{k:06d}.json", jsonout.dumps({"config_key": key, **relative.to_dict()}) + "\n")
+        relatives.append(relative)
+        on_pair(k + 1)
+        last = time.perf_counter()
+    return relatives
+
+
+def pose_readout_ms(sequence, config: PoseConfig) -> float:
+    """Stage 1's rolling-shutter readout (ms) for ``sequence`` (:func:`rolling_shutter.stage_readout_ms`)."""
+    return stage_readout_ms(config.readout_ms, config.camera_readout, getattr(sequence, "source", {}))
+
+
+def _deskewed_pair_key(key: str, readout_ms: float, motions: np.ndarray) -> str:
+    """The cache key of pairs on de-skewed frames: the pairs' own ``key``, the readout and its motions."""
+    text = json.dumps({"key": key, "readout_ms": readout_ms, "motions": np.round(motions, 9).tolist()})
+    return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
 def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray, config: PoseConfig,
@@ -1113,9 +1161,10 @@ def _pair_record(k: int, names: list[str], r: RelativePose) -> dict:
     return record
 
 
-def progress_steps(frames: int, config: PoseConfig) -> int:
-    """Stage 1's progress steps: the pairs, the pose graph's frames (with ``pose_graph``), the fused frames."""
-    return (frames - 1) * (2 if config.pose_graph else 1) + frames
+def progress_steps(frames: int, config: PoseConfig, readout_ms: float = 0.0) -> int:
+    """Stage 1's progress steps: the pairs (twice with a rolling shutter's ``readout_ms``), the pose graph's
+    frames (with ``pose_graph``), the fused frames."""
+    return (frames - 1) * ((2 if config.pose_graph else 1) + (1 if readout_ms > 0 else 0)) + frames
 
 
 MAX_PAIR_WARNINGS = 5  # weak pairs named one by one on the console; pairs.json lists them all
@@ -1148,11 +1197,16 @@ def weak_pair_warnings(sequence: Sequence, pairs: list[dict], config: PoseConfig
 
 def _run_stage(context: StageContext) -> StageRun:
     pairs = len(context.sequence) - 1
-    with context.progress(STAGE.title, progress_steps(len(context.sequence), context.config)) as update:
+    steps = progress_steps(len(context.sequence), context.config, pose_readout_ms(context.sequence, context.config))
+    with context.progress(STAGE.title, steps) as update:
         result = run_pose(context.sequence, context.out, context.config,
                           progress=lambda done, total, kind: update(done, total, step=kind))
     weak = sum(1 for p in result.pairs if p.get("weak"))
-    return StageRun(f"{pairs} pairs, {weak} weak", weak_pair_warnings(context.sequence, result.pairs, context.config))
+    shutter = result.rolling_shutter
+    deskewed = (f"; frames de-skewed for a rolling shutter of {shutter['readout_ms']:g} ms (rows up to "
+                f"{shutter['skew_px']:.1f} px from their frame's pose)") if shutter else ""
+    return StageRun(f"{pairs} pairs, {weak} weak{deskewed}",
+                    weak_pair_warnings(context.sequence, result.pairs, context.config))
 
 
 def _stage_inputs(out: Path, config: PoseConfig, poses: Path | None, points: Path | None) -> StageInputs:

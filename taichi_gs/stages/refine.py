@@ -43,6 +43,7 @@ from ..io.sequence import Sequence
 from ..io.trajectory import check_frame_times, read_tum, write_tum
 from ..plots import line_plot
 from ..refine_model import DepthRefiner
+from ..rolling_shutter import DeskewedSequence, deskewing_motions, stage_readout_ms
 from ..splats import Splats, splats_from_points
 from . import checkpoint
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
@@ -112,6 +113,11 @@ class RefineConfig:
     converge_pose_m: float = 0.0005
     converge_pose_deg: float = 0.05
     spatial_order: bool = False  # [ours] Gaussians in Morton order of their centres (memory layout only)
+    # [ours] a rolling shutter, as stage 1's readout_ms and camera_readout: when it trains, stage 2 fits the
+    # Gaussians to depth (and tests its poses on frames) de-skewed to each frame's pose, each frame's motion over
+    # its readout taken from the initial poses (rolling_shutter.DeskewedSequence). 0: a global shutter
+    readout_ms: float = 0.0
+    camera_readout: bool = False
 
 
 FAST_TRAINING_PER_FRAME = 60  # iterations_per_frame of the fast preset's schedule when stage 2 trains (not by default)
@@ -124,7 +130,7 @@ PRESETS = {
     # -0.05 to +0.21 dB held-out on five synthetic and real sequences, the sample in 0.91x the time (BENCHMARKS,
     # "Stage 3 straight from stage 1's cloud")
     "fast": RefineConfig(iterations_per_frame=0, prune_every_per_frame=20, reset_every_per_frame=40,
-                         checkpoint_every=200, spatial_order=True),
+                         checkpoint_every=200, spatial_order=True, camera_readout=True),
 }
 
 
@@ -374,11 +380,21 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, poses: np.ndarray, splat
     write_tum(stage_dir / "trajectory.txt", sequence.timestamps, poses, header="taichi-gs stage 2 (refine), camera-to-world")
 
 
+def deskewed_for_training(sequence: Sequence, initial_poses: np.ndarray, config: RefineConfig) -> tuple[Any, float]:
+    """The sequence stage 2 trains on and its rolling shutter's readout (ms): with a readout and training, the
+    frames de-skewed by the readout motions of ``initial_poses``; else ``sequence`` itself and 0."""
+    readout_ms = stage_readout_ms(config.readout_ms, config.camera_readout, sequence.source)
+    if readout_ms <= 0 or config.iterations_per_frame == 0:
+        return sequence, 0.0
+    return DeskewedSequence(sequence, deskewing_motions(sequence, initial_poses, readout_ms)[0]), readout_ms
+
+
 def _run_stage(context: StageContext) -> StageRun:
     initial, cloud, colors = load_stage1(context.out, context.sequence.timestamps, context.poses, context.points)
     config = context.config
+    sequence, readout_ms = deskewed_for_training(context.sequence, initial, config)
     with context.progress(STAGE.title, config.iterations_per_frame * len(context.sequence)) as update:
-        result = run_refine(context.sequence, initial, cloud, colors, context.out, config, progress=update)
+        result = run_refine(sequence, initial, cloud, colors, context.out, config, progress=update)
     scale = config.voxel_size / 2
     pixels, depth = gaussian_footprint_px(context.sequence, scale)
     footprint = f"sigma {scale * 100:.2g} cm = {pixels:.2f} px at the median depth {depth:.2f} m"
@@ -386,7 +402,8 @@ def _run_stage(context: StageContext) -> StageRun:
         return StageRun(f"{result.gaussians} Gaussians from stage 1's cloud ({footprint}), not trained "
                         "(iterations_per_frame = 0)")
     milliseconds = result.seconds_per_iteration * 1000
-    return StageRun(f"{result.gaussians} Gaussians ({footprint}), {milliseconds:.1f} ms/iteration")
+    shutter = f", frames de-skewed for a rolling shutter of {readout_ms:g} ms" if readout_ms > 0 else ""
+    return StageRun(f"{result.gaussians} Gaussians ({footprint}), {milliseconds:.1f} ms/iteration{shutter}")
 
 
 def _stage_inputs(out: Path, config: RefineConfig, poses: Path | None, points: Path | None) -> StageInputs:
