@@ -73,8 +73,8 @@ def stage_readout_ms(readout_ms: float, camera_readout: bool, source: dict) -> f
 
 # The most a frame's first or last row is moved when de-skewing, as a fraction of the image width (at the frame's
 # median depth; readout_px): a readout motion beyond it comes from a pose jump between neighbours, not from the
-# camera, and is scaled down to it. TUM fr1's fastest frames move 7 px of 640.
-MAX_DESKEW_WIDTH_FRACTION = 0.05
+# camera, and is scaled down to it. TUM fr1_rpy's fastest frames move their first and last rows 19 px of 640.
+MAX_DESKEW_WIDTH_FRACTION = 0.1
 
 
 def deskewing_motions(sequence: Any, poses: np.ndarray, readout_ms: float) -> tuple[np.ndarray, float]:
