@@ -8,6 +8,7 @@ frames' poses)."""
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import cv2
@@ -90,6 +91,8 @@ def deskewing_motions(sequence: Any, poses: np.ndarray, readout_ms: float) -> tu
     return motions, float(min(skews.max(initial=0.0), limit))
 
 
+DESKEW_CACHE_FRAMES = 16  # frames whose de-skewing maps a DeskewedSequence keeps (stage 1's window of frames)
+
 # De-skewing inverts the rows' displacement by fixed-point steps; displacements are a few pixels and smooth
 # along the image, so a few steps settle them to well under a hundredth of a pixel.
 DESKEW_STEPS = 4
@@ -107,17 +110,18 @@ def deskew_maps(depth: np.ndarray, K: np.ndarray, readout_motion: np.ndarray) ->
     z = np.where(valid, depth, fill).astype(np.float64)
     u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    read = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1)
-    at_pose = np.einsum("hij,hwj->hwi", rows[:, :3, :3], read) + rows[:, None, :3, 3]
-    shift_u = (fx * at_pose[..., 0] / at_pose[..., 2] + cx - u).astype(np.float32)
-    shift_v = (fy * at_pose[..., 1] / at_pose[..., 2] + cy - v).astype(np.float32)
+    read = ((u - cx) / fx * z, (v - cy) / fy * z, z)
+    R, t = rows[:, None, :3, :3], rows[:, None, :3, 3]  # each row's rotation and translation, broadcast along it
+    at_pose = [R[..., a, 0] * read[0] + R[..., a, 1] * read[1] + R[..., a, 2] * read[2] + t[..., a] for a in range(3)]
+    shift_u = (fx * at_pose[0] / at_pose[2] + cx - u).astype(np.float32)
+    shift_v = (fy * at_pose[1] / at_pose[2] + cy - v).astype(np.float32)
     # the pixel read at s lands at s + shift(s); find s for every landing pixel x: s = x - shift(s)
     map_u, map_v = u.astype(np.float32), v.astype(np.float32)
     for _ in range(DESKEW_STEPS):
         moved_u = cv2.remap(shift_u, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         moved_v = cv2.remap(shift_v, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         map_u, map_v = (u - moved_u).astype(np.float32), (v - moved_v).astype(np.float32)
-    depth_at_pose = np.where(valid, at_pose[..., 2], 0.0).astype(np.float32)
+    depth_at_pose = np.where(valid, at_pose[2], 0.0).astype(np.float32)
     return map_u, map_v, depth_at_pose
 
 
@@ -126,13 +130,15 @@ class DeskewedSequence:
     depth of each frame moved from the pose at which each row was read (its readout motion, :func:`shutter_rows`)
     to the frame's pose. Colour is resampled bilinearly, depth by nearest pixel (its values taken from the frame's
     pose); pixels the readout brought in from outside the frame have no depth and repeat the edge's colour.
-    Everything else is the wrapped sequence's; frames with no motion are its own."""
+    Everything else is the wrapped sequence's; frames with no motion are its own. The maps of the
+    :data:`DESKEW_CACHE_FRAMES` frames read last are kept, so a frame's colour and depth share one."""
 
     def __init__(self, sequence: Any, readout_motions: np.ndarray):
         self.sequence = sequence
         self.readout_motions = np.asarray(readout_motions, dtype=np.float64)
         if len(self.readout_motions) != len(sequence):
             raise ValueError(f"{len(self.readout_motions)} readout motions for {len(sequence)} frames")
+        self._maps = functools.lru_cache(maxsize=DESKEW_CACHE_FRAMES)(self._deskew_maps)
 
     def __len__(self) -> int:
         return len(self.sequence)
@@ -144,12 +150,18 @@ class DeskewedSequence:
         color = self.sequence.color(i)
         if not self.readout_motions[i].any():
             return color
-        map_u, map_v, _ = deskew_maps(self.sequence.depth(i), self.sequence.K(), self.readout_motions[i])
+        map_u, map_v, _ = self._maps(i)
         return cv2.remap(color, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def depth(self, i: int) -> np.ndarray:
-        depth = self.sequence.depth(i)
         if not self.readout_motions[i].any():
-            return depth
-        map_u, map_v, depth_at_pose = deskew_maps(depth, self.sequence.K(), self.readout_motions[i])
-        return cv2.remap(depth_at_pose, map_u, map_v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+            return self.sequence.depth(i)
+        return self._maps(i)[2]
+
+    def _deskew_maps(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frame ``i``'s :func:`deskew_maps`, with its de-skewed depth in place of the depth at its pose."""
+        map_u, map_v, depth_at_pose = deskew_maps(self.sequence.depth(i), self.sequence.K(), self.readout_motions[i])
+        depth = cv2.remap(depth_at_pose, map_u, map_v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        for image in (map_u, map_v, depth):
+            image.flags.writeable = False  # shared by every caller
+        return map_u, map_v, depth

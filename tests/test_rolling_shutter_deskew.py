@@ -17,8 +17,8 @@ from taichi_gs.cli import app
 from taichi_gs.evaluate import ate
 from taichi_gs.io.sequence import load_sequence
 from taichi_gs.geometry import se3_exp
-from taichi_gs.rolling_shutter import (MAX_DESKEW_WIDTH_FRACTION, DeskewedSequence, deskewing_motions, readout_motions,
-                                       readout_px, stage_readout_ms)
+from taichi_gs.rolling_shutter import (MAX_DESKEW_WIDTH_FRACTION, DeskewedSequence, deskew_maps, deskewing_motions,
+                                       readout_motions, readout_px, stage_readout_ms)
 from taichi_gs.stages import refine as refine_stage
 from taichi_gs.stages.pose import METHOD_ONLY, PRESETS, PoseConfig, pose_readout_ms, run_pose
 
@@ -70,6 +70,24 @@ def test_a_rolling_shutter_frame_moved_to_its_pose_is_the_global_shutter_frame()
     depth_before = np.median(np.abs(read_depth[inner] - global_depth[inner]))
     depth_after = np.median(np.abs(depth[seen] - global_depth[inner][seen]))
     assert depth_after < 0.25 * depth_before
+
+
+def test_a_frames_colour_and_depth_share_one_computation_of_its_maps(monkeypatch):
+    import taichi_gs.rolling_shutter as rolling_shutter
+
+    rng = np.random.default_rng(1)
+    frames = _Frames([rng.random((12, 16, 3), dtype=np.float32)] * 2, [1.0 + rng.random((12, 16), dtype=np.float32)] * 2,
+                     np.array([[20.0, 0, 7.5], [0, 20.0, 5.5], [0, 0, 1]]))
+    motions = np.tile([0.01, 0.0, 0.0, 0.0, 0.05, 0.0], (2, 1))
+    expected = DeskewedSequence(frames, motions)
+    expected = (expected.color(1), expected.depth(1))
+    calls = []
+    monkeypatch.setattr(rolling_shutter, "deskew_maps", lambda *a: calls.append(1) or deskew_maps(*a))
+    deskewed = DeskewedSequence(frames, motions)
+    color, depth = deskewed.color(1), deskewed.depth(1)
+    assert len(calls) == 1 and not depth.flags.writeable
+    np.testing.assert_array_equal(color, expected[0])
+    np.testing.assert_array_equal(depth, expected[1])
 
 
 def test_frames_without_readout_motion_are_the_sequences_own():
@@ -166,3 +184,35 @@ def test_the_cli_readout_stands_over_a_known_cameras_and_is_checked(tmp_path, ro
     result = CliRunner().invoke(app, ["pose", str(rolling_shutter_walk.root), "--out", str(tmp_path / "o"),
                                       "--readout-ms", "-5"])
     assert result.exit_code == 2
+
+
+@pytest.mark.parametrize("deskew_depth", [True, False])
+def test_stage_3_trains_on_depth_de_skewed_for_its_readout(tmp_path, monkeypatch, deskew_depth):
+    """With a readout, stage 3's depth frames (its depth loss, the fill of uncovered pixels) are de-skewed by the
+    motions of stage 2's poses; ``deskew_depth = false`` keeps them as read. Colour stays as read either way."""
+    from taichi_gs.stages import deblur as deblur_stage
+    from taichi_gs.standins import synthetic_refine_outputs
+
+    clip = synth.SynthConfig(width=48, height=32, frames=4, trajectory="handheld", blur="extreme", seed=2)
+    sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.1)
+    loaded = []
+    load = deblur_stage._load_frames
+
+    def spy(sequence, scale, sourced, depth_source=None):
+        loaded.append((depth_source, load(sequence, scale, sourced, depth_source)))
+        return loaded[-1][1]
+
+    monkeypatch.setattr(deblur_stage, "_load_frames", spy)
+    config = dataclasses.replace(deblur_stage.PRESETS["fast"], iterations_per_view=0, iterations=0, k=3,
+                                 adaptive_k=False, test_pose_iterations=0, holdout_every=0, keep_frame=False,
+                                 readout_ms=25.0, deskew_depth=deskew_depth)
+    deblur_stage.run_deblur(sequence, out, config)
+    depth_source, frames = loaded[0]
+    assert (depth_source is not None) == deskew_depth
+    for i in range(4):
+        np.testing.assert_array_equal(frames.colors[i], sequence.color(i))
+        expected = depth_source.depth(i) if deskew_depth else sequence.depth(i)
+        np.testing.assert_array_equal(frames.depths[i], expected)
+    if deskew_depth:
+        assert isinstance(depth_source, DeskewedSequence) and depth_source.readout_motions.any()
+        assert not np.array_equal(frames.depths[1], sequence.depth(1))

@@ -34,7 +34,7 @@ from ..io.trajectory import check_frame_times, format_tum, read_tum, write_tum
 from ..io.images import encode_depth, to_uint8, write_png
 from ..noreference import laplacian_variance, sharpest_holdout
 from ..photometric import IDENTITY, apply_affine, identity_penalty
-from ..rolling_shutter import camera_readout_ms, readout_motions, readout_px
+from ..rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, readout_px, stage_readout_ms
 from ..plots import image_grid, line_plot
 from ..splats import Splats
 from . import checkpoint
@@ -176,11 +176,16 @@ class DeblurConfig:
     # [ours] a rolling shutter: the colour camera reads its rows top to bottom over readout_ms milliseconds
     # (0: a global shutter, the method). Each virtual view's rows are then warped from the anchors at the poses
     # where they were read, along each frame's velocity from its neighbours in the trajectory
-    # (``rolling_shutter``); needs warp_views. The depth loss, the sharp renders and "error" densification stay
-    # global-shutter. camera_readout: with readout_ms 0 and warp_views, the readout of a camera the sequence's
-    # reading names where it is known (``rolling_shutter.KNOWN_READOUT_MS``: TUM fr1, 7-Scenes), else 0
+    # (``rolling_shutter``); needs warp_views. The sharp renders and "error" densification stay global-shutter.
+    # camera_readout: with readout_ms 0 and warp_views, the readout of a camera the sequence's reading names
+    # where it is known (``rolling_shutter.KNOWN_READOUT_MS``: TUM fr1, 7-Scenes), else 0
     readout_ms: float = 0.0
     camera_readout: bool = False
+    # [ours] with a readout, the depth frames are de-skewed to their frames' poses (rolling_shutter.DeskewedSequence,
+    # each frame's motion from stage 2's poses), so that the depth loss and fill_uncovered, which use
+    # global-shutter renders at the mid-exposure pose, meet depth as a global shutter would read it.
+    # false: depth as read
+    deskew_depth: bool = True
 
 
 PRESETS = {
@@ -411,12 +416,14 @@ class _Frames:
     sourced: np.ndarray | None = None  # H x W bool: pixels the losses use (None: all)
 
 
-def _load_frames(sequence: Sequence, scale: int, sourced: np.ndarray | None) -> _Frames:
-    """The frames at 1/``scale`` resolution; ``sourced`` (full resolution, or None) is shrunk alike,
-    a pixel kept only if its whole block is sourced."""
+def _load_frames(sequence: Sequence, scale: int, sourced: np.ndarray | None,
+                 depth_source: Sequence | DeskewedSequence | None = None) -> _Frames:
+    """The frames at 1/``scale`` resolution, depth read from ``depth_source`` (None: ``sequence``); ``sourced``
+    (full resolution, or None) is shrunk alike, a pixel kept only if its whole block is sourced."""
     colors = [_downsample_color(sequence.color(i), scale) for i in range(len(sequence))]
     h, w = colors[0].shape[:2]
-    depths = [downsample_depth(sequence.depth(i), scale)[:h, :w] for i in range(len(sequence))]
+    depth_source = sequence if depth_source is None else depth_source
+    depths = [downsample_depth(depth_source.depth(i), scale)[:h, :w] for i in range(len(sequence))]
     if sourced is not None:
         sourced = _downsample_color(sourced.astype(np.float32), scale) >= SOURCED
     return _Frames(colors, depths, median_depths(depths), _area_intrinsics(sequence.K(), scale), sourced)
@@ -451,15 +458,16 @@ def run_deblur(
     stage_dir = out_dir / "deblur"
     stage_dir.mkdir(parents=True, exist_ok=True)
     sourced = loss_mask(sequence, config)
-    frames = _load_frames(sequence, config.resolution_scale, sourced)
+    readout_ms = stage_readout_ms(config.readout_ms, config.camera_readout and config.warp_views, sequence.source)
+    depth_source = None
+    if readout_ms > 0 and config.deskew_depth:
+        depth_source = DeskewedSequence(sequence, deskewing_motions(sequence, poses, readout_ms)[0])
+    frames = _load_frames(sequence, config.resolution_scale, sourced, depth_source)
     train, test, sharpness = choose_split(frames.colors, config.holdout, config.holdout_every)
     config = with_headroom(scaled_schedule(config, len(train)), len(splats))
     height, width = frames.colors[0].shape[:2]
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
-    readout_ms = config.readout_ms
-    if readout_ms == 0 and config.camera_readout and config.warp_views:
-        readout_ms = camera_readout_ms(sequence.source)
     shutter = _Shutter(readout_motions(poses, sequence.timestamps, readout_ms / 1000.0), frames.median_depth)
     model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced,
                       warp_margin=warp_margin(config, shutter.skew_px(frames.K[0, 0], config)))
