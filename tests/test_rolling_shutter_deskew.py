@@ -174,6 +174,18 @@ def test_a_pose_jump_between_neighbours_de_skews_by_a_bounded_amount(rolling_shu
     np.testing.assert_allclose(motions[[0, 1, 2, 3, 7, 8, 9]], kept[[0, 1, 2, 3, 7, 8, 9]])
 
 
+def test_precomputed_flows_keep_the_frames_as_read(tmp_path):
+    """Flows from a folder belong to the frames as read: a known camera's readout is not applied with them, and a
+    readout asked for with them is an input error naming the folder."""
+    from taichi_gs.errors import InputError
+
+    tum = type("Reading", (), {"source": KINECT_V1})()
+    flows = dataclasses.replace(PRESETS["fast"], flow_dir=str(tmp_path))
+    assert pose_readout_ms(tum, PRESETS["fast"]) == 25.0 and pose_readout_ms(tum, flows) == 0.0
+    with pytest.raises(InputError, match="precomputed flows are of the frames as read"):
+        pose_readout_ms(tum, dataclasses.replace(flows, readout_ms=25.0))
+
+
 def test_the_cli_readout_stands_over_a_known_cameras_and_is_checked(tmp_path, rolling_shutter_walk):
     from taichi_gs.cli import READOUT_STAGES, with_readout
 

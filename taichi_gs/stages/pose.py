@@ -192,7 +192,8 @@ class PoseConfig:
     # from them (rolling_shutter.readout_motions), every frame de-skewed to its middle row's pose
     # (rolling_shutter.DeskewedSequence), and the pairs, the graph and the fused cloud computed again on the
     # de-skewed frames: about 1.4x the stage's time. 0: a global shutter. camera_readout: with readout_ms 0, the
-    # readout of a camera the sequence's reading names (rolling_shutter.KNOWN_READOUT_MS; on in the fast preset)
+    # readout of a camera the sequence's reading names (rolling_shutter.KNOWN_READOUT_MS; on in the fast preset).
+    # Not with precomputed flows (flow_dir), which are the frames' as read
     readout_ms: float = 0.0
     camera_readout: bool = False
     # Fused cloud
@@ -906,7 +907,14 @@ def _pair_estimates(sequence, frames: FrameCache, pair_dir: Path, key: str, conf
 
 
 def pose_readout_ms(sequence, config: PoseConfig) -> float:
-    """Stage 1's rolling-shutter readout (ms) for ``sequence`` (:func:`rolling_shutter.stage_readout_ms`)."""
+    """Stage 1's rolling-shutter readout (ms) for ``sequence`` (:func:`rolling_shutter.stage_readout_ms`); 0 with
+    precomputed flows (``flow_dir``), which are the frames' as read, and an input error if a readout is asked
+    for with them."""
+    if config.flow_dir:
+        if config.readout_ms > 0:
+            raise InputError(Path(config.flow_dir), "precomputed flows are of the frames as read, and a rolling "
+                             "shutter's readout de-skews the frames", "give --readout-ms 0, or leave out --flow-dir")
+        return 0.0
     return stage_readout_ms(config.readout_ms, config.camera_readout, getattr(sequence, "source", {}))
 
 
