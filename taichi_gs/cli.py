@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any, Optional, TypeVar
 
 import typer
 from rich.markup import escape
@@ -291,10 +291,11 @@ ProfileOption = Annotated[bool, typer.Option("--profile", help="Write OUT/profil
                                           "CPU seconds per stage and per kind of work (flow, ICP, renders, losses, ...).")]
 ScaleOption = Annotated[float, typer.Option("--scale", help="Read frames at S times their width and height (0.5: half).")]
 READOUT_STAGES = ("pose", "refine", "deblur")  # the sections a rolling shutter's --readout-ms sets
+StageConfig = TypeVar("StageConfig")
 ReadoutOption = Annotated[Optional[float], typer.Option("--readout-ms", min=0.0, help="Rolling shutter: the camera reads its rows top to bottom over this many ms (0: a global shutter; default: the preset's, which in fast is 25 for TUM fr1 and 7-Scenes (Kinect v1) and 0 otherwise).")]
 
 
-def with_readout(config, readout_ms: float | None):
+def with_readout(config: StageConfig, readout_ms: float | None) -> StageConfig:
     """``config`` with the user's ``--readout-ms``, which (0 included) stands over a known camera's readout."""
     if readout_ms is None:
         return config

@@ -144,6 +144,8 @@ class DeskewedSequence:
         return len(self.sequence)
 
     def __getattr__(self, name: str) -> Any:
+        if name == "sequence":  # not set yet: an instance made without __init__ (copy, pickle)
+            raise AttributeError(name)
         return getattr(self.sequence, name)
 
     def color(self, i: int) -> np.ndarray:

@@ -4,6 +4,7 @@ pairs as read and resumes from both caches, and the settings reach the stages fr
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 
@@ -96,6 +97,7 @@ def test_frames_without_readout_motion_are_the_sequences_own():
     deskewed = DeskewedSequence(frames, np.zeros((2, 6)))
     assert deskewed.color(1) is color and deskewed.depth(0) is depth and len(deskewed) == 2
     assert deskewed.K() is frames.K()  # everything else is the wrapped sequence's
+    assert copy.copy(deskewed).color(1) is color  # a copy reads through to the same sequence
     with pytest.raises(ValueError, match="3 readout motions for 2 frames"):
         DeskewedSequence(frames, np.zeros((3, 6)))
 
