@@ -32,6 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from taichi_gs.flow import dis_flow  # noqa: E402
 from taichi_gs.geometry import so3_exp, so3_log  # noqa: E402
 from taichi_gs.io.sequence import load_sequence  # noqa: E402
 
@@ -51,7 +52,7 @@ def band_rotations(gray_i: np.ndarray, gray_j: np.ndarray, depth_i: np.ndarray, 
     """The rotation of frame i's camera into frame j's fitted on the top and on the bottom third of j's rows, or
     None where a band has too few points; ``start`` (4 x 4, i to j) seeds the fits."""
     h, w = depth_i.shape
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(gray_i, gray_j, None)
+    flow = dis_flow(gray_i, gray_j, "medium")
     v, u = np.mgrid[0:h:STRIDE_PX, 0:w:STRIDE_PX]
     z = depth_i[v, u]
     fu, fv = u + flow[v, u, 0], v + flow[v, u, 1]

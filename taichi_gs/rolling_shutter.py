@@ -78,16 +78,19 @@ def stage_readout_ms(readout_ms: float, camera_readout: bool, source: dict) -> f
 MAX_DESKEW_WIDTH_FRACTION = 0.1
 
 
-def deskewing_motions(sequence: Any, poses: np.ndarray, readout_ms: float) -> tuple[np.ndarray, float]:
-    """Each frame's motion over a readout of ``readout_ms`` from ``poses`` (:func:`readout_motions`), scaled down
-    where it would move rows by more than :data:`MAX_DESKEW_WIDTH_FRACTION` of the width, and the largest
-    :func:`readout_px` of any frame after that (pixels, at its median depth)."""
-    motions = readout_motions(poses, sequence.timestamps, readout_ms / 1000.0)
-    K = sequence.K()
+def readout_skews(motions: np.ndarray, focal: float, depths: np.ndarray) -> np.ndarray:
+    """Each frame's :func:`readout_px` (pixels, its readout motion at its depth in ``depths``)."""
+    return np.array([readout_px(m, focal, z) for m, z in zip(motions, depths)])
+
+
+def deskewing_motions(sequence: Any, motions: np.ndarray) -> tuple[np.ndarray, float]:
+    """The readout ``motions`` (:func:`readout_motions`) scaled down where they would move a frame's rows by more
+    than :data:`MAX_DESKEW_WIDTH_FRACTION` of the width, and the largest :func:`readout_px` of any frame after that
+    (pixels, at its median depth)."""
     limit = MAX_DESKEW_WIDTH_FRACTION * sequence.intrinsics.width
     depths = median_depths([sequence.depth(i) for i in range(len(sequence))])
-    skews = np.array([readout_px(m, K[0, 0], z) for m, z in zip(motions, depths)])
-    motions *= np.minimum(1.0, limit / np.maximum(skews, 1e-12))[:, None]
+    skews = readout_skews(motions, sequence.K()[0, 0], depths)
+    motions = motions * np.minimum(1.0, limit / np.maximum(skews, 1e-12))[:, None]
     return motions, float(min(skews.max(initial=0.0), limit))
 
 

@@ -164,11 +164,11 @@ def test_a_pose_jump_between_neighbours_de_skews_by_a_bounded_amount(rolling_shu
     gives it) is scaled down to that; the others are kept as they are."""
     sequence = rolling_shutter_walk
     poses = sequence.gt_poses.copy()
-    kept, kept_skew = deskewing_motions(sequence, poses, 25.0)
+    kept, kept_skew = deskewing_motions(sequence, readout_motions(poses, sequence.timestamps, 0.025))
     assert 0.5 < kept_skew < MAX_DESKEW_WIDTH_FRACTION * 160
     np.testing.assert_allclose(kept, readout_motions(poses, sequence.timestamps, 0.025))
     poses[5] = poses[5] @ se3_exp(np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.0]))  # a 57-degree jump
-    motions, skew = deskewing_motions(sequence, poses, 25.0)
+    motions, skew = deskewing_motions(sequence, readout_motions(poses, sequence.timestamps, 0.025))
     assert skew == pytest.approx(MAX_DESKEW_WIDTH_FRACTION * 160)
     for i in (4, 6):  # their neighbours' poses straddle the jump
         depth = sequence.depth(i)

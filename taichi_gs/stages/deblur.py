@@ -34,7 +34,7 @@ from ..io.trajectory import check_frame_times, format_tum, read_tum, write_tum
 from ..io.images import encode_depth, to_uint8, write_png
 from ..noreference import laplacian_variance, sharpest_holdout
 from ..photometric import IDENTITY, apply_affine, identity_penalty
-from ..rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, readout_px, stage_readout_ms
+from ..rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, readout_skews, stage_readout_ms
 from ..plots import image_grid, line_plot
 from ..splats import Splats
 from . import checkpoint
@@ -459,16 +459,17 @@ def run_deblur(
     stage_dir.mkdir(parents=True, exist_ok=True)
     sourced = loss_mask(sequence, config)
     readout_ms = stage_readout_ms(config.readout_ms, config.camera_readout and config.warp_views, sequence.source)
+    motions = readout_motions(poses, sequence.timestamps, readout_ms / 1000.0)
     depth_source = None
     if readout_ms > 0 and config.deskew_depth:
-        depth_source = DeskewedSequence(sequence, deskewing_motions(sequence, poses, readout_ms)[0])
+        depth_source = DeskewedSequence(sequence, deskewing_motions(sequence, motions)[0])
     frames = _load_frames(sequence, config.resolution_scale, sourced, depth_source)
     train, test, sharpness = choose_split(frames.colors, config.holdout, config.holdout_every)
     config = with_headroom(scaled_schedule(config, len(train)), len(splats))
     height, width = frames.colors[0].shape[:2]
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
-    shutter = _Shutter(readout_motions(poses, sequence.timestamps, readout_ms / 1000.0), frames.median_depth)
+    shutter = _Shutter(motions, frames.median_depth)
     model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced,
                       warp_margin=warp_margin(config, shutter.skew_px(frames.K[0, 0], config)))
     centres = poses[train, :3, 3]
@@ -787,7 +788,7 @@ class _Shutter:
         """The most any frame's first or last row lies from its pose on the image (:func:`readout_px`, pixels at
         focal ``focal``), at most ``MAX_SKEW_MARGIN_SCALE`` x ``warp_px``: a pose jump between neighbours must not
         blow up the anchors' margin."""
-        skew = max(readout_px(m, focal, z) for m, z in zip(self.motions, self.median_depth))
+        skew = float(readout_skews(self.motions, focal, self.median_depth).max())
         return min(skew, MAX_SKEW_MARGIN_SCALE * config.warp_px)
 
 

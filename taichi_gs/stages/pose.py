@@ -40,7 +40,7 @@ from ..io.ply import write_point_cloud
 from ..io.trajectory import write_tum
 from ..machine import available_cores
 from ..pose_graph import Edge, optimise, rechoose
-from ..rolling_shutter import DeskewedSequence, deskewing_motions, stage_readout_ms
+from ..rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, stage_readout_ms
 from ..pose_verify import (FlowCheck, FrameView, Verification, VerifySettings, depth_normals, flow_disagreement,
                            frame_view, verify)
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
@@ -850,7 +850,8 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
         if readout_ms > 0:  # [ours] the pairs as read give each frame's motion over its readout; de-skew, redo
             as_read = _pair_estimates(sequence, FrameCache(sequence, K, config), pose_dir / "pairs_as_read", key,
                                       config, pool, progress_of("pairs as read", 0))
-            motions, skew_px = deskewing_motions(sequence, chain_poses([r.transform for r in as_read]), readout_ms)
+            motions, skew_px = deskewing_motions(sequence, readout_motions(
+                chain_poses([r.transform for r in as_read]), sequence.timestamps, readout_ms / 1000.0))
             sequence = DeskewedSequence(sequence, motions)
             key = _deskewed_pair_key(key, readout_ms, motions)
             shutter = {"readout_ms": readout_ms, "skew_px": round(skew_px, 3)}

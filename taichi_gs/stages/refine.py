@@ -43,7 +43,7 @@ from ..io.sequence import Sequence
 from ..io.trajectory import check_frame_times, read_tum, write_tum
 from ..plots import line_plot
 from ..refine_model import DepthRefiner
-from ..rolling_shutter import DeskewedSequence, deskewing_motions, stage_readout_ms
+from ..rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, stage_readout_ms
 from ..splats import Splats, splats_from_points
 from . import checkpoint
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
@@ -386,7 +386,8 @@ def deskewed_for_training(sequence: Sequence, initial_poses: np.ndarray, config:
     readout_ms = stage_readout_ms(config.readout_ms, config.camera_readout, sequence.source)
     if readout_ms <= 0 or config.iterations_per_frame == 0:
         return sequence, 0.0
-    return DeskewedSequence(sequence, deskewing_motions(sequence, initial_poses, readout_ms)[0]), readout_ms
+    motions = readout_motions(initial_poses, sequence.timestamps, readout_ms / 1000.0)
+    return DeskewedSequence(sequence, deskewing_motions(sequence, motions)[0]), readout_ms
 
 
 def _run_stage(context: StageContext) -> StageRun:
