@@ -132,3 +132,16 @@ def test_sequence_folders_are_read_as_the_options_say(tmp_path):
         assert np.allclose(sequence.gt_poses, whole.gt_poses[kept])
     plain = SimpleNamespace(sequence=[tmp_path / "kitchen"], first=0, every=1, camera=None, scale=1.0, frames=0)
     assert [name for name, _, _ in bench_pose.sequences(plain, tmp_path)] == ["kitchen"]
+
+
+def test_the_7_scenes_grid_is_read_as_shipped_or_registered(tmp_path, monkeypatch):
+    """``--real-camera`` picks the reader's camera for the 7-Scenes grid, and a registered row says so."""
+    write_7scenes(tmp_path / "kitchen")
+    monkeypatch.setattr(bench_pose, "SEVEN_SCENES", tmp_path / "kitchen")
+    for camera, label in (("shipped", "7-Scenes every 1 x1"), ("registered", "7-Scenes every 1 x1 registered")):
+        args = SimpleNamespace(sequence=None, size="40x30", scenes="", trajectories="handheld", seeds="0",
+                               synth_readout_ms=0.0, real_every="1", real_scale=1.0, real_camera=camera, frames=0)
+        [(name, sequence, synthetic)] = list(bench_pose.sequences(args, tmp_path))
+        assert name == label and not synthetic
+        assert sequence.source["camera"] == camera
+        assert np.allclose(sequence.gt_poses, load_sequence(tmp_path / "kitchen", camera=camera).gt_poses)
