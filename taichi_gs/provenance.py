@@ -41,7 +41,7 @@ def file_digest(path: Path) -> str:
 def sequence_record(sequence: Sequence) -> dict[str, Any]:
     """The facts about an input sequence that stage results depend on (readable, for done.json)."""
     files = [[_stat(rgb), _stat(depth)] for rgb, depth in zip(sequence.rgb_paths, sequence.depth_paths)]
-    return {
+    record = {
         "root": str(Path(sequence.root).resolve()),
         "layout": sequence.layout,
         "load_options": sequence.load_options,
@@ -50,6 +50,10 @@ def sequence_record(sequence: Sequence) -> dict[str, Any]:
         "timestamps_sha256": _digest([round(float(t), 6) for t in sequence.timestamps]),
         "files_sha256": _digest(files),
     }
+    readout_ms = getattr(sequence, "source", {}).get("readout_ms")
+    if readout_ms is not None:  # the own layout's rolling-shutter readout (only then: other records keep theirs)
+        record["readout_ms"] = readout_ms
+    return record
 
 
 def stage_fingerprint(stage: str, sequence: Sequence, config: dict[str, Any],

@@ -59,8 +59,11 @@ def readout_px(readout_motion: np.ndarray, focal: float, depth: float) -> float:
 
 
 def camera_readout_ms(source: dict) -> float:
-    """The readout (ms) of a sequence's camera where its reading names a known one (``Sequence.source``: format
-    and camera; :data:`KNOWN_READOUT_MS`), else 0."""
+    """The readout (ms) of a sequence's camera where its reading gives one (``Sequence.source``: the own
+    layout's intrinsics.json ``readout_ms``) or names a known camera (format and camera;
+    :data:`KNOWN_READOUT_MS`), else 0."""
+    if "readout_ms" in source:
+        return float(source["readout_ms"])
     return KNOWN_READOUT_MS.get((source.get("format"), source.get("camera")), 0.0)
 
 

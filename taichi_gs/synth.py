@@ -400,6 +400,8 @@ def _write_tables(
     K = camera_matrix(config)
     intrinsics = {"width": config.width, "height": config.height, "fx": K[0, 0], "fy": K[1, 1],
                   "cx": K[0, 2], "cy": K[1, 2], "depth_scale": config.depth_scale}
+    if config.readout_ms > 0:  # the rolling shutter's readout, for the fast preset's camera_readout
+        intrinsics["readout_ms"] = config.readout_ms
     write_text(out_dir / "intrinsics.json", jsonout.dumps(intrinsics, indent=2) + "\n")
     frames = ["# timestamp rgb depth"]
     frames += [f"{t:.6f} rgb/{i:06d}.png depth/{i:06d}.png" for i, t in enumerate(timestamps)]

@@ -197,6 +197,30 @@ def test_import_keeps_which_pixels_the_camera_saw(tmp_path):
     assert not (seen / "sourced.png").exists() and load_sequence(seen).sourced_pixels().all()
 
 
+def test_import_keeps_the_cameras_rolling_shutter_readout(tmp_path):
+    """[ours] A TUM fr1 reading (Kinect v1: 25 ms) imported: the copy's intrinsics.json carries ``readout_ms``, so
+    the fast preset de-skews the copy as it would the original. A reading without a known readout (fr3) writes
+    none. A bad ``readout_ms`` is a one-line error naming intrinsics.json, and the CLI exits 2 on it."""
+    from taichi_gs.stages.pose import PRESETS, pose_readout_ms
+
+    folder, _ = _write("tum", tmp_path)
+    original = load_sequence(folder, scale=0.5)
+    copy = import_sequence(original, tmp_path / "copy")
+    assert json.loads((copy / "intrinsics.json").read_text())["readout_ms"] == 25.0
+    assert pose_readout_ms(load_sequence(copy), PRESETS["fast"]) == pose_readout_ms(original, PRESETS["fast"]) == 25.0
+    plain = import_sequence(load_sequence(folder, camera="fr3"), tmp_path / "plain")
+    assert "readout_ms" not in json.loads((plain / "intrinsics.json").read_text())
+    assert pose_readout_ms(load_sequence(plain), PRESETS["fast"]) == 0.0
+    values = json.loads((copy / "intrinsics.json").read_text())
+    for bad in (-1, "fast", 5000):
+        (copy / "intrinsics.json").write_text(json.dumps({**values, "readout_ms": bad}))
+        with pytest.raises(InputError, match="readout_ms") as error:
+            load_sequence(copy)
+        assert "intrinsics.json" in str(error.value) and "\n" not in str(error.value)
+    result = CliRunner().invoke(app, ["pose", str(copy), "--out", str(tmp_path / "run")])
+    assert result.exit_code == 2 and "readout_ms" in result.output
+
+
 @pytest.mark.parametrize("mask", ["wrong size", "colour", "not a png"])
 def test_a_bad_sourced_mask_gives_a_one_line_error(tmp_path, mask):
     folder, _ = _write("tum", tmp_path)

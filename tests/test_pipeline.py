@@ -109,6 +109,20 @@ def test_a_corrected_depth_scale_reruns_every_stage(own_layout, tmp_path, fake_s
     assert open_run_sequence(tmp_path).intrinsics.depth_scale == 4000.0  # later commands reopen it the same way
 
 
+def test_a_rolling_shutter_readout_written_into_intrinsics_json_reruns_every_stage(own_layout, tmp_path, fake_stages):
+    """[ours] The own layout's ``readout_ms`` changes what the fast preset computes, so a run made before the user
+    wrote it is not current; a run without one keeps its fingerprint (the key is recorded only when given)."""
+    sections = resolve_sections("fast")
+    reconstruct(load_sequence(own_layout), tmp_path, sections, _no_progress)
+    fake_stages.clear()
+    reconstruct(load_sequence(own_layout), tmp_path, sections, _no_progress)
+    assert fake_stages == []
+    intrinsics = own_layout / "intrinsics.json"
+    intrinsics.write_text(json.dumps({**json.loads(intrinsics.read_text()), "readout_ms": 20.0}))
+    reconstruct(load_sequence(own_layout), tmp_path, sections, _no_progress)
+    assert fake_stages == list(STAGES)
+
+
 def test_another_input_into_a_finished_run_folder_is_refused(own_layout, tmp_path, fake_stages):
     sections = resolve_sections("fast")
     out = tmp_path / "run"

@@ -140,6 +140,8 @@ def test_stage_1_on_de_skewed_frames_holds_where_the_frames_as_read_slip(tmp_pat
 
 
 def test_known_cameras_readout_reaches_stages_1_and_2_in_the_fast_preset(rolling_shutter_walk):
+    """A known camera's readout (a Kinect v1 reading, or the own layout's intrinsics.json ``readout_ms``) is the
+    fast preset's; the stage's own readout stands over it, and the paper preset keeps a global shutter."""
     assert PRESETS["fast"].camera_readout and not PRESETS["paper"].camera_readout
     assert not METHOD_ONLY.camera_readout and METHOD_ONLY.readout_ms == 0
     assert stage_readout_ms(0.0, True, KINECT_V1) == 25.0
@@ -147,7 +149,10 @@ def test_known_cameras_readout_reaches_stages_1_and_2_in_the_fast_preset(rolling
     assert stage_readout_ms(0.0, False, KINECT_V1) == 0.0
     assert stage_readout_ms(0.0, True, {"format": "taichi-gs"}) == 0.0
     sequence = rolling_shutter_walk
-    assert pose_readout_ms(sequence, PRESETS["fast"]) == 0.0  # the own layout names no camera
+    assert sequence.source["readout_ms"] == 25.0  # synth wrote its readout into intrinsics.json
+    assert pose_readout_ms(sequence, PRESETS["fast"]) == 25.0
+    assert pose_readout_ms(sequence, PRESETS["paper"]) == 0.0
+    assert stage_readout_ms(0.0, True, {"format": "taichi-gs", "readout_ms": 0.0}) == 0.0  # a global shutter, said
 
     poses = sequence.gt_poses
     refine_fast = dataclasses.replace(refine_stage.PRESETS["fast"], readout_ms=25.0)

@@ -1,7 +1,8 @@
 """``taichi-gs import``: any readable sequence written out in taichi-gs's own layout.
 
 Writes ``frames.txt``, ``rgb/NAME.png`` (8-bit), ``depth/NAME.png`` (uint16 at the sequence's depth
-scale), ``intrinsics.json``, and when the input has them ``groundtruth.txt``, ``exposure.txt``,
+scale), ``intrinsics.json`` (with the camera's rolling-shutter ``readout_ms`` where the reading gives or
+names one, e.g. ``--camera fr1``), and when the input has them ``groundtruth.txt``, ``exposure.txt``,
 ``sharp/`` and ``sourced.png`` (the pixels that came from the camera, when some did not: an undistorted
 frame's border), each frame as the reader gives it (resampled, undistorted, masked, subsampled, scaled).
 Everything goes to a temporary folder beside OUT, renamed onto OUT at the end; the input is only read.
@@ -9,15 +10,18 @@ Everything goes to a temporary folder beside OUT, renamed onto OUT at the end; t
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..rolling_shutter import camera_readout_ms
+from . import jsonout
 from .atomic import atomic_folder, write_text
 from .images import encode_depth, to_uint8, write_png
-from .sequence import Sequence
+from .sequence import READOUT_KEY, Sequence
 from .trajectory import format_tum
 
 
@@ -49,7 +53,7 @@ def _write(sequence: Sequence, dest: Path, progress: Callable[[int, int], None] 
         if progress is not None:
             progress(i + 1, len(sequence))
     write_text(dest / "frames.txt", "\n".join(lines) + "\n")
-    write_text(dest / "intrinsics.json", intr.to_json())
+    write_text(dest / "intrinsics.json", intrinsics_json(sequence))
     sourced = sequence.sourced_pixels()
     if not sourced.all():
         write_png(dest / "sourced.png", np.where(sourced, 255, 0).astype(np.uint8))
@@ -63,3 +67,14 @@ def _write(sequence: Sequence, dest: Path, progress: Callable[[int, int], None] 
         end = format_tum(sequence.timestamps, sequence.exposure_poses[:, 1]).splitlines()
         rows = [f"{a} {b.split(maxsplit=1)[1]}" for a, b in zip(start, end)]
         write_text(dest / "exposure.txt", "\n".join(rows) + "\n")
+
+
+def intrinsics_json(sequence: Sequence) -> str:
+    """The imported slice's intrinsics.json: the sequence's intrinsics, and the readout of a rolling-shutter
+    camera its reading gives or names (``rolling_shutter.camera_readout_ms``), which the own layout then
+    carries as ``readout_ms``."""
+    values = dataclasses.asdict(sequence.intrinsics)
+    readout_ms = camera_readout_ms(sequence.source)
+    if readout_ms > 0:
+        values[READOUT_KEY] = readout_ms
+    return jsonout.dumps(values, indent=2) + "\n"

@@ -3,7 +3,9 @@
 Own layout (written by ``taichi-gs synth``)::
 
     SEQ/intrinsics.json   {"width", "height", "fx", "fy", "cx", "cy", "depth_scale"}, and "depth_camera" for
-                          depth from its own camera, registered as it is read (``io.registration``)
+                          depth from its own camera, registered as it is read (``io.registration``), and
+                          "readout_ms" for a colour camera with a rolling shutter (``rolling_shutter``;
+                          ``Sequence.source["readout_ms"]``, what ``camera_readout`` takes)
     SEQ/frames.txt        "timestamp rgb/NAME.png depth/NAME.png" per frame
     SEQ/groundtruth.txt   optional TUM trajectory (camera-to-world), matched to frames by time
     SEQ/exposure.txt      optional "timestamp" + start and end pose (tx ty tz qx qy qz qw each)
@@ -324,7 +326,7 @@ def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
             raise InputError(missing[0], "sharp image missing", "restore it or remove the sharp/ folder")
     sourced = root / "sourced.png"
     depth_camera = depth_camera_in(root / "intrinsics.json")
-    return Sequence(
+    sequence = Sequence(
         root, "taichi-gs", intrinsics, timestamps, rgb_paths, depth_paths,
         gt_poses=_ground_truth(root / "groundtruth.txt", timestamps),
         exposure_poses=read_exposure(root / "exposure.txt", timestamps),
@@ -332,6 +334,34 @@ def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
         transform=None if depth_camera is None else RegisterDepth(depth_camera, intrinsics.K(), intrinsics.width,
                                                                    intrinsics.height),
     )
+    readout_ms = readout_in(root / "intrinsics.json")
+    if readout_ms is not None:
+        sequence.source = {**sequence.source, READOUT_KEY: readout_ms}
+    return sequence
+
+
+READOUT_KEY = "readout_ms"  # intrinsics.json: the colour camera's rolling-shutter readout (ms; 0: a global shutter)
+
+
+def readout_in(json_path: Path) -> float | None:
+    """The ``readout_ms`` entry of an own layout's intrinsics.json (None without the file or the entry; the
+    file's syntax is checked where its intrinsics are read)."""
+    try:
+        values = json.loads(json_path.read_text())
+    except (OSError, ValueError):
+        return None
+    entry = values.get(READOUT_KEY) if isinstance(values, dict) else None
+    if entry is None:
+        return None
+    try:
+        readout_ms = float(entry)
+    except (TypeError, ValueError):
+        readout_ms = math.nan
+    if not (math.isfinite(readout_ms) and 0.0 <= readout_ms < 1000.0):
+        raise InputError(json_path, f"{READOUT_KEY} {entry!r} is not a readout in milliseconds",
+                         f'write "{READOUT_KEY}": the ms the camera takes to read its rows top to bottom '
+                         "(0: a global shutter), or leave it out")
+    return readout_ms
 
 
 # Closest-first matches around a frame whose median offset says which side its depth frame should be on.
