@@ -21,6 +21,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -75,14 +76,19 @@ class RegisterDepth(FrameTransform):
         return nearest.reshape(self.height, self.width).astype(np.float32)
 
 
-def depth_camera_in(json_path: Path) -> DepthCamera | None:
-    """The ``depth_camera`` entry of an intrinsics.json (None without the file or the entry; the file's
-    syntax is checked where its intrinsics are read)."""
+def intrinsics_entry(json_path: Path, key: str) -> Any:
+    """The ``key`` entry of an intrinsics.json, or None without the file or the entry (the file's syntax is
+    checked where its intrinsics are read)."""
     try:
         values = json.loads(json_path.read_text())
     except (OSError, ValueError):
         return None
-    entry = values.get(JSON_KEY) if isinstance(values, dict) else None
+    return values.get(key) if isinstance(values, dict) else None
+
+
+def depth_camera_in(json_path: Path) -> DepthCamera | None:
+    """The ``depth_camera`` entry of an intrinsics.json (None without the file or the entry)."""
+    entry = intrinsics_entry(json_path, JSON_KEY)
     if entry is None:
         return None
     fix = f"write {EXAMPLE} (colour_from_depth: a translation in metres, or a 4x4 rigid matrix)"

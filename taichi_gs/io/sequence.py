@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import intrinsics_matrix, pose_from_rt, quat_to_rotmat, rotmat_to_quat
-from .registration import RegisterDepth, depth_camera_in
+from .registration import RegisterDepth, depth_camera_in, intrinsics_entry
 from .trajectory import read_tum_rows, tum_rows_to_poses
 from . import jsonout
 from .transforms import FrameTransform
@@ -344,13 +344,8 @@ READOUT_KEY = "readout_ms"  # intrinsics.json: the colour camera's rolling-shutt
 
 
 def readout_in(json_path: Path) -> float | None:
-    """The ``readout_ms`` entry of an own layout's intrinsics.json (None without the file or the entry; the
-    file's syntax is checked where its intrinsics are read)."""
-    try:
-        values = json.loads(json_path.read_text())
-    except (OSError, ValueError):
-        return None
-    entry = values.get(READOUT_KEY) if isinstance(values, dict) else None
+    """The ``readout_ms`` entry of an own layout's intrinsics.json (None without the file or the entry)."""
+    entry = intrinsics_entry(json_path, READOUT_KEY)
     if entry is None:
         return None
     try:
