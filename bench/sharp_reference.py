@@ -30,6 +30,7 @@ recording is read, never written.
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import shutil
 import subprocess
@@ -83,9 +84,13 @@ def merge(stretch: Sequence, references: Sequence, out: Path, every: int) -> lis
                          f"--holdout {every} on {n} frames")
     (out / "rgb").mkdir(parents=True)
     (out / "depth").mkdir()
-    for name in ("intrinsics.json", "sourced.png"):
-        if (stretch.root / name).is_file():
-            shutil.copy(stretch.root / name, out)
+    if (stretch.root / "sourced.png").is_file():
+        shutil.copy(stretch.root / "sourced.png", out)
+    # the stretch's intrinsics without a rolling shutter's readout: the merged frames' made-up stamps put frames
+    # from another part of the recording between stretch frames, so neighbours do not give a frame's velocity
+    intrinsics = json.loads((stretch.root / "intrinsics.json").read_text())
+    intrinsics.pop("readout_ms", None)
+    (out / "intrinsics.json").write_text(json.dumps(intrinsics, indent=2) + "\n")
     held = set(test)
     order = iter(range(len(stretch))), iter(range(len(references)))
     stamps = stretch.timestamps[0] + np.arange(n) / 30.0

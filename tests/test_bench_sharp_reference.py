@@ -3,6 +3,7 @@ every frame with its own pose, and a reference whose reference pose is off by a 
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -64,3 +65,15 @@ def test_a_reference_is_placed_by_depth_icp_in_stage_1s_frame(tmp_path):
         assert rotation_deg(found, expected) < 0.3
         assert np.linalg.norm(found[:3, 3] - expected[:3, 3]) < 0.01
     assert rotation_deg(world @ lagged[0], truth[0]) > 0.9  # the start was a degree off
+
+
+def test_the_merged_sequence_keeps_no_rolling_shutter_readout(tmp_path):
+    """An imported Kinect v1 stretch gives ``readout_ms`` in its intrinsics.json; the merged sequence's made-up
+    stamps would give its frames wrong velocities, so it keeps the intrinsics without it."""
+    stretch, references = _clip(tmp_path / "stretch", 6, 1), _clip(tmp_path / "references", 2, 2)
+    intrinsics = json.loads((stretch / "intrinsics.json").read_text())
+    (stretch / "intrinsics.json").write_text(json.dumps({**intrinsics, "readout_ms": 25.0}))
+    assert load_sequence(stretch).source["readout_ms"] == 25.0
+    merge(load_sequence(stretch), load_sequence(references), tmp_path / "merged", every=4)
+    assert json.loads((tmp_path / "merged" / "intrinsics.json").read_text()) == intrinsics
+    assert "readout_ms" not in load_sequence(tmp_path / "merged").source
