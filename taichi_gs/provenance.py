@@ -17,7 +17,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from .io.sequence import Sequence
+from .io.sequence import READOUT_KEY, Sequence
 
 
 def _digest(value: Any) -> str:
@@ -50,9 +50,9 @@ def sequence_record(sequence: Sequence) -> dict[str, Any]:
         "timestamps_sha256": _digest([round(float(t), 6) for t in sequence.timestamps]),
         "files_sha256": _digest(files),
     }
-    readout_ms = getattr(sequence, "source", {}).get("readout_ms")
+    readout_ms = sequence.source.get(READOUT_KEY)
     if readout_ms is not None:  # the own layout's rolling-shutter readout (only then: other records keep theirs)
-        record["readout_ms"] = readout_ms
+        record[READOUT_KEY] = readout_ms
     return record
 
 

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from .geometry import adjoint, invert, median_depths, se3_exp, se3_log
+from .io.sequence import READOUT_KEY
 
 # Readouts (ms) of the colour cameras of known (format, camera) readings: Kinect v1's, 25 ms, the best of 0, 15, 25
 # and 35 ms on a TUM fr1 stretch and near bench/rolling_shutter_readout.py's estimates (BENCHMARKS.md, "A rolling
@@ -62,8 +63,8 @@ def camera_readout_ms(source: dict) -> float:
     """The readout (ms) of a sequence's camera where its reading gives one (``Sequence.source``: the own
     layout's intrinsics.json ``readout_ms``) or names a known camera (format and camera;
     :data:`KNOWN_READOUT_MS`), else 0."""
-    if "readout_ms" in source:
-        return float(source["readout_ms"])
+    if READOUT_KEY in source:
+        return float(source[READOUT_KEY])
     return KNOWN_READOUT_MS.get((source.get("format"), source.get("camera")), 0.0)
 
 
