@@ -42,7 +42,7 @@ import numpy as np
 from taichi_gs.evaluate import psnr, rotation_angle_deg, ssim
 from taichi_gs.icp import align, depth_cloud
 from taichi_gs.io.jsonout import write_json
-from taichi_gs.io.sequence import Sequence, load_sequence, read_color
+from taichi_gs.io.sequence import READOUT_KEY, Sequence, load_sequence, read_color
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.noreference import gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from taichi_gs.plots import image_grid
@@ -89,7 +89,7 @@ def merge(stretch: Sequence, references: Sequence, out: Path, every: int) -> lis
     # the stretch's intrinsics without a rolling shutter's readout: the merged frames' made-up stamps put frames
     # from another part of the recording between stretch frames, so neighbours do not give a frame's velocity
     intrinsics = json.loads((stretch.root / "intrinsics.json").read_text())
-    intrinsics.pop("readout_ms", None)
+    intrinsics.pop(READOUT_KEY, None)
     (out / "intrinsics.json").write_text(json.dumps(intrinsics, indent=2) + "\n")
     held = set(test)
     order = iter(range(len(stretch))), iter(range(len(references)))

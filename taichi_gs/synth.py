@@ -42,6 +42,7 @@ from .geometry import intrinsics_matrix, invert, pose_from_rt, se3_exp, se3_log,
 from .io.atomic import write_text
 from .io import jsonout
 from .io.images import encode_depth, to_uint8, write_png
+from .io.sequence import READOUT_KEY
 from .io.trajectory import format_tum, write_tum
 from .streaks import exposure_poses, exposure_smear, path_lengths, point_tracks
 from .synth_scenes import CAMERA_DISC_RADIUS_M, SCENES, build_scene  # noqa: F401 (CAMERA_DISC_RADIUS_M re-exported)
@@ -401,7 +402,7 @@ def _write_tables(
     intrinsics = {"width": config.width, "height": config.height, "fx": K[0, 0], "fy": K[1, 1],
                   "cx": K[0, 2], "cy": K[1, 2], "depth_scale": config.depth_scale}
     if config.readout_ms > 0:  # the rolling shutter's readout, for the fast preset's camera_readout
-        intrinsics["readout_ms"] = config.readout_ms
+        intrinsics[READOUT_KEY] = config.readout_ms
     write_text(out_dir / "intrinsics.json", jsonout.dumps(intrinsics, indent=2) + "\n")
     frames = ["# timestamp rgb depth"]
     frames += [f"{t:.6f} rgb/{i:06d}.png depth/{i:06d}.png" for i, t in enumerate(timestamps)]

@@ -10,7 +10,6 @@ Everything goes to a temporary folder beside OUT, renamed onto OUT at the end; t
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,10 +17,9 @@ import numpy as np
 
 from ..errors import InputError
 from ..rolling_shutter import camera_readout_ms
-from . import jsonout
 from .atomic import atomic_folder, write_text
 from .images import encode_depth, to_uint8, write_png
-from .sequence import READOUT_KEY, Sequence
+from .sequence import Sequence
 from .trajectory import format_tum
 
 
@@ -53,7 +51,7 @@ def _write(sequence: Sequence, dest: Path, progress: Callable[[int, int], None] 
         if progress is not None:
             progress(i + 1, len(sequence))
     write_text(dest / "frames.txt", "\n".join(lines) + "\n")
-    write_text(dest / "intrinsics.json", intrinsics_json(sequence))
+    write_text(dest / "intrinsics.json", intr.to_json(camera_readout_ms(sequence.source)))
     sourced = sequence.sourced_pixels()
     if not sourced.all():
         write_png(dest / "sourced.png", np.where(sourced, 255, 0).astype(np.uint8))
@@ -67,14 +65,3 @@ def _write(sequence: Sequence, dest: Path, progress: Callable[[int, int], None] 
         end = format_tum(sequence.timestamps, sequence.exposure_poses[:, 1]).splitlines()
         rows = [f"{a} {b.split(maxsplit=1)[1]}" for a, b in zip(start, end)]
         write_text(dest / "exposure.txt", "\n".join(rows) + "\n")
-
-
-def intrinsics_json(sequence: Sequence) -> str:
-    """The imported slice's intrinsics.json: the sequence's intrinsics, and the readout of a rolling-shutter
-    camera its reading gives or names (``rolling_shutter.camera_readout_ms``), which the own layout then
-    carries as ``readout_ms``."""
-    values = dataclasses.asdict(sequence.intrinsics)
-    readout_ms = camera_readout_ms(sequence.source)
-    if readout_ms > 0:
-        values[READOUT_KEY] = readout_ms
-    return jsonout.dumps(values, indent=2) + "\n"

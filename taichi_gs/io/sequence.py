@@ -39,6 +39,7 @@ MAX_TIME_DIFFERENCE = 0.02  # seconds, TUM associate.py's default
 MEDIAN_DEPTH_RANGE = (0.1, 100.0)  # metres: outside it the depth scale is surely wrong
 INDOOR_MEDIAN_DEPTH = (0.25, 6.0)  # metres: indoor RGB-D sensors; outside it the scale is likely wrong
 COMMON_DEPTH_SCALES = (1000.0, 5000.0, 6553.5, 4000.0, 10000.0, 1.0)  # mm, TUM, Replica, RealSense, ...
+READOUT_KEY = "readout_ms"  # intrinsics.json: the colour camera's rolling-shutter readout (ms; 0: a global shutter)
 
 
 @dataclass(frozen=True)
@@ -57,8 +58,10 @@ class Intrinsics:
         """3x3 intrinsics matrix."""
         return intrinsics_matrix(self.fx, self.fy, self.cx, self.cy)
 
-    def to_json(self) -> str:
-        return jsonout.dumps(asdict(self), indent=2) + "\n"
+    def to_json(self, readout_ms: float = 0.0) -> str:
+        """intrinsics.json's text; a rolling shutter's ``readout_ms`` (above 0) as :data:`READOUT_KEY`."""
+        values = {**asdict(self), READOUT_KEY: readout_ms} if readout_ms > 0 else asdict(self)
+        return jsonout.dumps(values, indent=2) + "\n"
 
 
 @dataclass(frozen=True)
@@ -338,9 +341,6 @@ def _open_own_layout(root: Path, override: IntrinsicsOverride) -> Sequence:
     if readout_ms is not None:
         sequence.source = {**sequence.source, READOUT_KEY: readout_ms}
     return sequence
-
-
-READOUT_KEY = "readout_ms"  # intrinsics.json: the colour camera's rolling-shutter readout (ms; 0: a global shutter)
 
 
 def readout_in(json_path: Path) -> float | None:
