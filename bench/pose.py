@@ -5,6 +5,7 @@
                          [--methods ...] [--out DIR]
     python bench/pose.py --sequence FOLDER [--sequence FOLDER ...]   # any folders with ground truth
                          [--first N] [--every N] [--camera C] [--scale S]   # how every --sequence folder is read
+    python bench/pose.py ... --reference TRAJ.txt   # also score the real sequences against another reference
 
 Sequences: ``taichi_gs.synth`` (extreme blur) for every scene kind, trajectory kind and seed, and the 7-Scenes
 RedKitchen slice of ../shared/data at every 1st, 2nd, 3rd frame, read as shipped (``--camera shipped``:
@@ -41,6 +42,11 @@ per-pair translation error p50 / p90 / max (mm), weak pairs, pruned graph edges,
 A reference break is a pair whose ground-truth relative pose scores (stage 1's verification, the same for every
 method) above ``--break-ratio`` x the sequence's median: 7-Scenes' reference jumps 36 mm between frames 121 and 122,
 which every method's ATE carries; the ATE between breaks aligns each stretch between them on its own.
+With ``--reference`` (a TUM trajectory whose time stamps are the frames', e.g. the structure-from-motion pseudo
+ground truth that Brachmann et al., ICCV 2021, published for 7-Scenes), every real sequence's methods are also scored
+against it, in rows named "... vs STEM" (the file's stem) with breaks of their own, beside a row that scores the
+sequence's own reference against it: real captures have no true reference, and two references that disagree by as
+much as the methods do cannot rank them.
 After the table, a ground-truth check (with ``ours``): the pairs whose ground-truth relative pose aligns the two
 frames far worse than ours does (verification score above ``--gt-check-ratio`` x ours'), where a pair error
 measures the ground truth more than the method (real captures' ground truth has glitches). Then issue 11's
@@ -64,6 +70,7 @@ from taichi_gs.flow import dis_flow, to_gray_u8
 from taichi_gs.geometry import backproject, invert
 from taichi_gs.icp import align, depth_cloud, rgbd_odometry
 from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.trajectory import read_tum
 from taichi_gs.pose_verify import frame_view, verify
 from taichi_gs.stages.pose import PRESETS as POSE_PRESETS
 from taichi_gs.stages.pose import PoseConfig, chain_poses, icp_levels, run_pose
@@ -233,6 +240,29 @@ def pair_scores(sequence, relatives: list[np.ndarray]) -> np.ndarray:
     return np.array(scores)
 
 
+def reference_poses(path: Path, timestamps: np.ndarray, max_difference: float = 0.001) -> np.ndarray:
+    """The poses of the TUM trajectory ``path`` at ``timestamps`` (each within ``max_difference`` s of one of its
+    rows); SystemExit naming the first frame it lacks."""
+    times, poses = read_tum(path)
+    nearest = np.abs(times[None, :] - timestamps[:, None]).argmin(axis=1)
+    missing = np.nonzero(np.abs(times[nearest] - timestamps) > max_difference)[0]
+    if len(missing):
+        raise SystemExit(f"{path}: no pose at time {timestamps[missing[0]]:.4f} s (frame {missing[0]} of the sequence); "
+                         "give a reference with a row per frame, stamped as the sequence's frames")
+    return poses[nearest]
+
+
+def other_reference(path: Path, name: str, sequence, break_ratio: float) -> tuple[str, np.ndarray, list[int], list[str]]:
+    """``--reference`` for one real sequence: its rows' name, its poses at the frames, its breaks and their lines."""
+    poses = reference_poses(path, sequence.timestamps)
+    scores = pair_scores(sequence, reference_relatives(poses))
+    breaks = reference_breaks(scores, break_ratio)
+    name = f"{name} vs {path.stem}"
+    lines = [f"- {name}, pair {k}: the reference scores {scores[k]:.3f}, {scores[k] / np.median(scores):.1f}x its median"
+             for k in breaks]
+    return name, poses, breaks, lines
+
+
 def reference_relatives(gt: np.ndarray) -> list[np.ndarray]:
     """The reference's relative poses, camera k -> camera k + 1."""
     return [invert(gt[k + 1]) @ gt[k] for k in range(len(gt) - 1)]
@@ -381,6 +411,8 @@ def main() -> None:
     parser.add_argument("--camera", default=None, help="--sequence folders: the reader's --camera (TUM: fr1 ...)")
     parser.add_argument("--scale", type=float, default=1.0, help="--sequence folders: read at S times their size")
     parser.add_argument("--out", type=Path, default=None, help="keep sequences and outputs here")
+    parser.add_argument("--reference", type=Path, default=None,
+                        help="also score real sequences against this TUM trajectory (rows '... vs STEM')")
     parser.add_argument("--gt-check-ratio", type=float, default=2.0,
                         help="list pairs whose ground truth scores above this x ours' (0: no check)")
     parser.add_argument("--break-ratio", type=float, default=BREAK_RATIO,
@@ -398,6 +430,14 @@ def main() -> None:
         breaks = reference_breaks(truth_scores, args.break_ratio)
         break_lines += [f"- {name}, pair {k} ({sequence.names[k]} -> {sequence.names[k + 1]}): the ground truth scores "
                         f"{truth_scores[k]:.3f}, {truth_scores[k] / np.median(truth_scores):.1f}x its median" for k in breaks]
+        scorings = [(name, gt, breaks)]
+        if args.reference is not None and not synthetic:
+            other_name, other, other_breaks, lines = other_reference(args.reference, name, sequence, args.break_ratio)
+            scorings.append((other_name, other, other_breaks))
+            break_lines += lines
+            measured.append(measure(other_name, "the sequence's own reference", gt, other, other_breaks, None, "-",
+                                    synthetic, sequence.intrinsics.width))
+            print(row(measured[-1]), flush=True)
         ours, pair_caches = None, {}
         for method in methods:
             if method in OURS:
@@ -419,9 +459,10 @@ def main() -> None:
                 poses, seconds, extra = run_dis_ransac(sequence)
             else:
                 raise SystemExit(f"unknown method {method!r}")
-            measured.append(measure(name, method, poses, gt, breaks, seconds, extra, synthetic,
-                                    sequence.intrinsics.width))
-            print(row(measured[-1]), flush=True)
+            for scored_name, scored_gt, scored_breaks in scorings:
+                measured.append(measure(scored_name, method, poses, scored_gt, scored_breaks, seconds, extra,
+                                        synthetic, sequence.intrinsics.width))
+                print(row(measured[-1]), flush=True)
         if ours is not None and args.gt_check_ratio > 0:
             suspects += ground_truth_check(name, sequence, ours, truth_scores, args.gt_check_ratio)
     if args.gt_check_ratio > 0 and "ours" in methods:
