@@ -1,4 +1,4 @@
-"""Convert a 7-Scenes / 12-Scenes pseudo ground truth file (one line per image: ``seq-NN/frame-NNNNNN.color.png qw qx
+"""Convert a 7-Scenes pseudo ground truth file (one line per image: ``seq-NN/frame-NNNNNN.color.png qw qx
 qy qz tx ty tz f``, world-to-camera as COLMAP writes it; Brachmann et al., "On the Limits of Pseudo Ground Truth in
 Visual Camera Re-localisation", ICCV 2021) into a TUM trajectory of one sequence, camera-to-world, stamped frame / 30
 as taichi-gs's 7-Scenes reader stamps the frames, for ``bench/pose.py --reference``.

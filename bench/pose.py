@@ -257,10 +257,10 @@ def other_reference(path: Path, name: str, sequence, break_ratio: float) -> tupl
     poses = reference_poses(path, sequence.timestamps)
     scores = pair_scores(sequence, reference_relatives(poses))
     breaks = reference_breaks(scores, break_ratio)
-    name = f"{name} vs {path.stem}"
-    lines = [f"- {name}, pair {k}: the reference scores {scores[k]:.3f}, {scores[k] / np.median(scores):.1f}x its median"
-             for k in breaks]
-    return name, poses, breaks, lines
+    row_name = f"{name} vs {path.stem}"
+    lines = [f"- {row_name}, pair {k}: the reference scores {scores[k]:.3f}, {scores[k] / np.median(scores):.1f}x its "
+             "median" for k in breaks]
+    return row_name, poses, breaks, lines
 
 
 def reference_relatives(gt: np.ndarray) -> list[np.ndarray]:
