@@ -65,7 +65,7 @@ from pathlib import Path
 
 import numpy as np
 
-from taichi_gs.evaluate import ate, trajectory_errors
+from taichi_gs.evaluate import ate, match_by_time, trajectory_errors
 from taichi_gs.flow import dis_flow, to_gray_u8
 from taichi_gs.geometry import backproject, invert
 from taichi_gs.icp import align, depth_cloud, rgbd_odometry
@@ -244,12 +244,12 @@ def reference_poses(path: Path, timestamps: np.ndarray, max_difference: float = 
     """The poses of the TUM trajectory ``path`` at ``timestamps`` (each within ``max_difference`` s of one of its
     rows); SystemExit naming the first frame it lacks."""
     times, poses = read_tum(path)
-    nearest = np.abs(times[None, :] - timestamps[:, None]).argmin(axis=1)
-    missing = np.nonzero(np.abs(times[nearest] - timestamps) > max_difference)[0]
-    if len(missing):
-        raise SystemExit(f"{path}: no pose at time {timestamps[missing[0]]:.4f} s (frame {missing[0]} of the sequence); "
+    frames, rows = match_by_time(timestamps, times, max_difference)
+    if len(frames) < len(timestamps):
+        first = min(set(range(len(timestamps))) - set(frames.tolist()))
+        raise SystemExit(f"{path}: no pose at time {timestamps[first]:.4f} s (frame {first} of the sequence); "
                          "give a reference with a row per frame, stamped as the sequence's frames")
-    return poses[nearest]
+    return poses[rows]
 
 
 def other_reference(path: Path, name: str, sequence, break_ratio: float) -> tuple[str, np.ndarray, list[int], list[str]]:

@@ -30,7 +30,6 @@ recording is read, never written.
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import shutil
 import subprocess
@@ -42,7 +41,7 @@ import numpy as np
 from taichi_gs.evaluate import psnr, rotation_angle_deg, ssim
 from taichi_gs.icp import align, depth_cloud
 from taichi_gs.io.jsonout import write_json
-from taichi_gs.io.sequence import READOUT_KEY, Sequence, load_sequence, read_color
+from taichi_gs.io.sequence import Sequence, load_sequence, read_color
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.noreference import gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from taichi_gs.plots import image_grid
@@ -88,9 +87,7 @@ def merge(stretch: Sequence, references: Sequence, out: Path, every: int) -> lis
         shutil.copy(stretch.root / "sourced.png", out)
     # the stretch's intrinsics without a rolling shutter's readout: the merged frames' made-up stamps put frames
     # from another part of the recording between stretch frames, so neighbours do not give a frame's velocity
-    intrinsics = json.loads((stretch.root / "intrinsics.json").read_text())
-    intrinsics.pop(READOUT_KEY, None)
-    (out / "intrinsics.json").write_text(json.dumps(intrinsics, indent=2) + "\n")
+    (out / "intrinsics.json").write_text(stretch.intrinsics.to_json())
     held = set(test)
     order = iter(range(len(stretch))), iter(range(len(references)))
     stamps = stretch.timestamps[0] + np.arange(n) / 30.0

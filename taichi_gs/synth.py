@@ -42,7 +42,7 @@ from .geometry import intrinsics_matrix, invert, pose_from_rt, se3_exp, se3_log,
 from .io.atomic import write_text
 from .io import jsonout
 from .io.images import encode_depth, to_uint8, write_png
-from .io.sequence import READOUT_KEY
+from .io.sequence import Intrinsics
 from .io.trajectory import format_tum, write_tum
 from .streaks import exposure_poses, exposure_smear, path_lengths, point_tracks
 from .synth_scenes import CAMERA_DISC_RADIUS_M, SCENES, build_scene  # noqa: F401 (CAMERA_DISC_RADIUS_M re-exported)
@@ -399,11 +399,9 @@ def _write_tables(
 ) -> None:
     """intrinsics.json, frames.txt, groundtruth.txt and exposure.txt."""
     K = camera_matrix(config)
-    intrinsics = {"width": config.width, "height": config.height, "fx": K[0, 0], "fy": K[1, 1],
-                  "cx": K[0, 2], "cy": K[1, 2], "depth_scale": config.depth_scale}
-    if config.readout_ms > 0:  # the rolling shutter's readout, for the fast preset's camera_readout
-        intrinsics[READOUT_KEY] = config.readout_ms
-    write_text(out_dir / "intrinsics.json", jsonout.dumps(intrinsics, indent=2) + "\n")
+    intrinsics = Intrinsics(config.width, config.height, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config.depth_scale)
+    # with a rolling shutter's readout (above 0), which the fast preset's camera_readout takes
+    write_text(out_dir / "intrinsics.json", intrinsics.to_json(config.readout_ms))
     frames = ["# timestamp rgb depth"]
     frames += [f"{t:.6f} rgb/{i:06d}.png depth/{i:06d}.png" for i, t in enumerate(timestamps)]
     write_text(out_dir / "frames.txt", "\n".join(frames) + "\n")
