@@ -3,8 +3,8 @@
     python bench/launch_cores.py [--seconds 2] [--run RUN]
 
 Part one times one kernel of uniform work (a parallel loop whose items all cost the same) at lengths from about
-0.03 to 150 ms, and the same work as a serial loop, in this process with the thread count that ``taichi_gs``
-starts Taichi with. It prints ms of wall and CPU per launch and cores (CPU over wall): what Taichi's thread pool
+0.1 to 160 ms, and the same work as a serial loop, in this process with the thread count that ``taichi_gs``
+starts Taichi with (under the kernel profiler when ``--run`` is given, as the run will be). It prints ms of wall and CPU per launch and cores (CPU over wall): what Taichi's thread pool
 leaves of the machine at each length when no load imbalance exists.
 
 ``--run RUN`` (a run folder with ``refine/`` finished) then runs ``taichi-gs deblur RUN --quiet`` in this
@@ -26,7 +26,7 @@ from ab import run_line
 from kernel_tasks import task_name
 
 LOOPS = ((3_000, 1), (30_000, 1), (100_000, 1), (100_000, 4), (100_000, 16), (100_000, 64), (100_000, 256))
-"""(items, sin() calls per item) of each timed loop: about 0.03 to 150 ms per launch on one core here."""
+"""(items, sin() calls per item) of each timed loop: about 0.03 to 310 ms per launch on one core here."""
 BINS_MS = (0.3, 1.0, 3.0, 10.0)
 
 
