@@ -7,9 +7,10 @@ never picked by ``auto``: it runs the GPU kernels on the CPU, slower than the CP
 it by name (``--arch vulkan``) to test the GPU execution model. Asking for a backend that is not
 there raises :class:`BackendError` (Taichi itself would fall back to the CPU silently).
 float64 kernels need CPU or CUDA: Taichi's SPIR-V code generator (Vulkan, Metal) has no 64-bit
-``exp``. [ours] The CPU backend runs :data:`CPU_THREADS_PER_CORE` threads per core the process may use
-(``TI_CPU_MAX_NUM_THREADS`` sets the count instead): with one thread per core, a core whose share of a
-parallel loop ends first waits for the other.
+``exp``. [ours] The CPU backend is started with :data:`CPU_THREADS_PER_CORE` threads per core the process may
+use (``TI_CPU_MAX_NUM_THREADS`` sets the count instead): measured at 0.88-0.94x the time of one per core. Taichi
+1.7.4 then holds that many pool threads, though on 2 cores only two of them take work (BENCHMARKS.md, "Which of
+Taichi's threads take work").
 """
 
 from __future__ import annotations
