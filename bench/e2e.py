@@ -58,12 +58,6 @@ def run_one(frames: int, args: argparse.Namespace, work: Path) -> dict:
     metrics = json.loads((out / "metrics.json").read_text())
     profile = json.loads((out / "profile.json").read_text())
     stages = metrics["stages"]
-    test = (metrics.get("images") or {}).get("test", {})
-    if args.sequence:  # no sharp ground truth: the held-out frames themselves, and the warped-neighbour floor
-        scores = metrics["no_reference"]["test"]
-        test = {"psnr_db": scores["held_out_psnr_db"], "ssim": scores["held_out_ssim"],
-                "blurred_input_psnr_db": scores["warped_neighbour_psnr_db"],
-                "blurred_input_ssim": scores["warped_neighbour_ssim"]}
     height, width = cv2.imread(str(min((out / "deblur" / "renders" / "sharp").glob("*.png")))).shape[:2]
     return {
         "frames": frames, "size": f"{width}x{height}", "wall": wall,
@@ -72,11 +66,23 @@ def run_one(frames: int, args: argparse.Namespace, work: Path) -> dict:
         "gaussians": json.loads((out / "deblur" / "history.json").read_text())[-1]["gaussians"],
         "peak_mb": max(s["peak_rss_mb"] for s in stages.values()),
         "ate_mm": 1000 * metrics["trajectory"]["deblur"]["ate_m"],
-        "psnr": test.get("psnr_db", float("nan")), "ssim": test.get("ssim", float("nan")),
-        "floor_psnr": test.get("blurred_input_psnr_db", float("nan")),
-        "floor_ssim": test.get("blurred_input_ssim", float("nan")),
+        **held_out_scores(metrics, recording=args.sequence is not None),
         "arch": metrics["arch"],
     }
+
+
+def held_out_scores(metrics: dict, recording: bool) -> dict[str, float]:
+    """PSNR / SSIM of the held-out views and of their floor: against the sharp ground truth, the floor being the
+    blurred input; on a recording (no ground truth), against the held-out frames, the floor being the nearer
+    training frames warped into each view (``eval``'s no-reference section). NaN where ``eval`` has no score."""
+    nan = float("nan")
+    if recording:
+        test = metrics["no_reference"]["test"]
+        keys = ("held_out_psnr_db", "held_out_ssim", "warped_neighbour_psnr_db", "warped_neighbour_ssim")
+    else:
+        test = (metrics.get("images") or {}).get("test", {})
+        keys = ("psnr_db", "ssim", "blurred_input_psnr_db", "blurred_input_ssim")
+    return {name: test.get(key, nan) for name, key in zip(("psnr", "ssim", "floor_psnr", "floor_ssim"), keys)}
 
 
 def main() -> None:

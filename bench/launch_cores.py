@@ -4,8 +4,9 @@
 
 Part one times one kernel of uniform work (a parallel loop whose items all cost the same) at lengths from about
 0.1 to 160 ms, and the same work as a serial loop, in this process with the thread count that ``taichi_gs``
-starts Taichi with (under the kernel profiler when ``--run`` is given, as the run will be). It prints ms of wall and CPU per launch and cores (CPU over wall): what Taichi's thread pool
-leaves of the machine at each length when no load imbalance exists.
+starts Taichi with (under the kernel profiler when ``--run`` is given, as the run will be). It prints ms of wall
+and CPU per launch and cores (CPU over wall): what Taichi's thread pool leaves of the machine at each length when
+no load imbalance exists.
 
 ``--run RUN`` (a run folder with ``refine/`` finished) then runs ``taichi-gs deblur RUN --quiet`` in this
 process under Taichi's kernel profiler, which times every offloaded task (each top-level loop of a launch). It

@@ -9,8 +9,9 @@ there raises :class:`BackendError` (Taichi itself would fall back to the CPU sil
 float64 kernels need CPU or CUDA: Taichi's SPIR-V code generator (Vulkan, Metal) has no 64-bit
 ``exp``. [ours] The CPU backend is started with :data:`CPU_THREADS_PER_CORE` threads per core the process may
 use (``TI_CPU_MAX_NUM_THREADS`` sets the count instead): measured at 0.88-0.94x the time of one per core. Taichi
-1.7.4 then holds that many pool threads, though on 2 cores only two of them take work (BENCHMARKS.md, "Which of
-Taichi's threads take work").
+1.7.4 then holds that many pool threads, though on 2 cores only two of them take work; what the count buys is
+finer pieces, since Taichi cuts each parallel loop into that many contiguous ones (BENCHMARKS.md, "Which of
+Taichi's threads take work" and "A parallel loop is cut into as many contiguous pieces ...").
 """
 
 from __future__ import annotations
