@@ -31,6 +31,20 @@ def task_name(profiler_name: str) -> str:
     return f"{match[1]}:{match[2]} {match[3]}" if match else profiler_name
 
 
+def init_with_profiler(arch: str, profiler: bool = True):
+    """``taichi_gs``'s one Taichi init on ``arch``, with Taichi's kernel profiler on or off; the backend it got."""
+    import taichi as ti
+
+    from taichi_gs.kernels import runtime
+
+    init = ti.init
+    ti.init = lambda **kw: init(**{**kw, "kernel_profiler": profiler})  # runtime.init is the one place that inits
+    try:
+        return runtime.init(arch)
+    finally:
+        ti.init = init
+
+
 def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int) -> dict[str, float]:
     """{task: mean ms per forward + backward pass} over ``passes`` passes after three warm-up passes; the
     camera turns a little between passes."""
@@ -38,14 +52,8 @@ def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int) -> dict
     from taichi.lang import impl
 
     from taichi_gs.geometry import se3_exp
-    from taichi_gs.kernels import runtime
 
-    init = ti.init
-    ti.init = lambda **kw: init(**{**kw, "kernel_profiler": True})  # runtime.init is the one place that inits
-    try:
-        runtime.init(arch)
-    finally:
-        ti.init = init
+    init_with_profiler(arch)
     from taichi_gs.kernels.splat import to_device
     from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
 

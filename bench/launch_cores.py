@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from ab import run_line
-from kernel_tasks import task_name
+from kernel_tasks import init_with_profiler, task_name
 
 LOOPS = ((3_000, 1), (30_000, 1), (100_000, 1), (100_000, 4), (100_000, 16), (100_000, 64), (100_000, 256))
 """(items, sin() calls per item) of each timed loop: about 0.03 to 310 ms per launch on one core here."""
@@ -156,16 +156,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0, help="timing window per loop and length")
     parser.add_argument("--run", type=Path, help="a run folder whose stage 3 to profile (its deblur/ is rewritten)")
     args = parser.parse_args()
-    import taichi as ti
-
-    from taichi_gs.kernels import runtime
-
-    init = ti.init
-    ti.init = lambda **kw: init(**{**kw, "kernel_profiler": args.run is not None})
-    try:
-        backend = runtime.init("cpu")
-    finally:
-        ti.init = init
+    backend = init_with_profiler("cpu", profiler=args.run is not None)
     curve = launch_curve(args.seconds)
     print(run_line("cpu") + f", {backend.cpu_threads} Taichi threads, kernel profiler {'on' if args.run else 'off'}\n")
     print("| items x sin() | parallel: ms wall / CPU per launch | cores | serial: ms wall per launch |")
