@@ -109,7 +109,9 @@ def profile_stage3(run: Path) -> tuple[list[tuple[str, float]], float, float]:
 
     ti.profiler.clear_kernel_profiler_info()
     start, cpu = time.perf_counter(), cpu_seconds()
-    app(["deblur", str(run), "--quiet"], standalone_mode=False)
+    code = app(["deblur", str(run), "--quiet"], standalone_mode=False)
+    if code:  # the CLI has printed why
+        raise SystemExit(code)
     ti.sync()
     wall, used = time.perf_counter() - start, cpu_seconds() - cpu
     prog = impl.get_runtime().prog

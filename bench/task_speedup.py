@@ -11,8 +11,8 @@ its own threads, stays well under the core count; a balanced one comes close to 
 run's wall time into the time inside the tasks and the time outside them (Python, launches, buffer growth, the
 profiler's timers): what no kernel change can speed up. RUN's ``deblur/`` is rewritten (twice).
 
-Cores (CPU over wall, as ``launch_cores.py`` and ``time`` report them) also count the threads' spinning; a
-speed-up counts only what finishes sooner.
+Cores (CPU over wall, as ``launch_cores.py`` and ``time`` report them) count all CPU time, also a thread's time
+without useful work; a speed-up counts only what finishes sooner.
 """
 
 from __future__ import annotations
@@ -39,7 +39,9 @@ def profile_in_child(run: Path, threads: int | None) -> dict:
     if threads is not None:
         env[THREADS_ENV] = str(threads)
     done = subprocess.run([sys.executable, __file__, "--run", str(run), "--child"], env=env, capture_output=True,
-                          text=True, check=True)
+                          text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"stage 3 of {run} failed with {threads or 'the default'} thread(s):\n{done.stderr[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
