@@ -120,6 +120,16 @@ def profile_stage3(run: Path) -> tuple[list[tuple[str, float]], float, float]:
     return [(r.name, r.kernel_time) for r in prog.get_kernel_profiler_records()], wall, used
 
 
+def tasks_by_kind(tasks: list[tuple[str, float]]) -> dict[str, list]:
+    """{kind (``kernel_tasks.task_name``): [calls, ms]} of profiled ``tasks`` ([(profiler name, ms)])."""
+    kinds: dict[str, list] = {}
+    for name, ms in tasks:
+        kind = kinds.setdefault(task_name(name), [0, 0.0])
+        kind[0] += 1
+        kind[1] += ms
+    return kinds
+
+
 def report_tasks(tasks: list[tuple[str, float]], curve: list[dict], wall: float, used: float) -> None:
     """The tasks' length distribution and the uniform-work ceiling against the run's own cores."""
     parallel = [ms for name, ms in tasks if not name.endswith("serial")]
@@ -141,12 +151,7 @@ def report_tasks(tasks: list[tuple[str, float]], curve: list[dict], wall: float,
     print(f"\nuniform-work ceiling of the tasks: {task_ceiling(tasks, curve):.3f} cores; the tasks' own cores if the "
           f"{outside:.1f} s outside them (Python, launches, the profiler's timers) used one core: "
           f"{(used - outside) / (task_ms / 1e3):.3f}; serial tasks {serial_ms / 1e3:.2f} s\n")
-    by_kernel: dict[str, list[float]] = {}
-    for name, ms in tasks:
-        kernel = by_kernel.setdefault(task_name(name), [0, 0.0])
-        kernel[0] += 1
-        kernel[1] += ms
-    ranked = sorted(by_kernel.items(), key=lambda item: -item[1][1])
+    ranked = sorted(tasks_by_kind(tasks).items(), key=lambda item: -item[1][1])
     print("| task (the 10 longest in all, then the 6 longest serial ones) | calls | s | mean ms |")
     print("|---|---|---|---|")
     for name, (calls, ms) in ranked[:10] + [item for item in ranked if item[0].endswith("serial")][:6]:

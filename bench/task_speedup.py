@@ -25,19 +25,19 @@ import sys
 from pathlib import Path
 
 from ab import run_line
-from kernel_tasks import init_with_profiler, task_name
-from launch_cores import profile_stage3
+from kernel_tasks import init_with_profiler
+from launch_cores import profile_stage3, tasks_by_kind
 
-THREADS_ENV = "TI_CPU_MAX_NUM_THREADS"  # read by Taichi at init (taichi_gs.kernels.runtime.CPU_THREADS_ENV)
+from taichi_gs.kernels.runtime import CPU_THREADS_ENV
 SHOWN = 12  # kinds of task listed, the longest on one thread first
 
 
 def profile_in_child(run: Path, threads: int | None) -> dict:
     """This script's ``--child`` result for ``run`` in a fresh process: ``threads`` Taichi CPU threads, or
     ``taichi_gs``'s own count when None."""
-    env = {key: value for key, value in os.environ.items() if key != THREADS_ENV}
+    env = {key: value for key, value in os.environ.items() if key != CPU_THREADS_ENV}
     if threads is not None:
-        env[THREADS_ENV] = str(threads)
+        env[CPU_THREADS_ENV] = str(threads)
     done = subprocess.run([sys.executable, __file__, "--run", str(run), "--child"], env=env, capture_output=True,
                           text=True)
     if done.returncode != 0:
@@ -49,12 +49,7 @@ def child(run: Path) -> dict:
     """{threads, wall_s, cpu_s, tasks: {kind: [calls, ms]}} of one profiled stage-3 run in this process."""
     backend = init_with_profiler("cpu")
     tasks, wall, used = profile_stage3(run)
-    kinds: dict[str, list] = {}
-    for name, ms in tasks:
-        kind = kinds.setdefault(task_name(name), [0, 0.0])
-        kind[0] += 1
-        kind[1] += ms
-    return {"threads": backend.cpu_threads, "wall_s": wall, "cpu_s": used, "tasks": kinds}
+    return {"threads": backend.cpu_threads, "wall_s": wall, "cpu_s": used, "tasks": tasks_by_kind(tasks)}
 
 
 def speedups(one: dict, many: dict) -> list[tuple[str, int, float, float]]:
@@ -79,11 +74,10 @@ def report(one: dict, many: dict) -> None:
     print("|---|---|---|---|---|")
     for kind, calls, s_one, s_many in rows[:SHOWN]:
         print(f"| {kind} | {calls} | {s_one:.2f} | {s_many:.2f} | {s_one / s_many:.2f} |")
-    in_one, out_one = inside_outside(one)
-    in_many, out_many = inside_outside(many)
+    in_one, in_many = inside_outside(one)[0], inside_outside(many)[0]
     print(f"\nall tasks: {in_one:.1f} s on one thread, {in_many:.1f} s on {n}: speed-up {in_one / in_many:.2f}")
-    for label, result, inside, outside in (("1 thread", one, in_one, out_one), (f"{n} threads", many, in_many,
-                                                                                 out_many)):
+    for label, result in (("1 thread", one), (f"{n} threads", many)):
+        inside, outside = inside_outside(result)
         print(f"{label}: {result['wall_s']:.1f} s wall, {result['cpu_s'] / result['wall_s']:.2f} cores; "
               f"{inside:.1f} s inside the tasks, {outside:.1f} s outside them ({outside / result['wall_s']:.0%})")
     print(f"stage speed-up {one['wall_s'] / many['wall_s']:.2f}; with no time outside the tasks it would be "
