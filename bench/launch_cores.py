@@ -6,7 +6,9 @@ Part one times one kernel of uniform work (a parallel loop whose items all cost 
 0.1 to 160 ms, and the same work as a serial loop, in this process with the thread count that ``taichi_gs``
 starts Taichi with (under the kernel profiler when ``--run`` is given, as the run will be). It prints ms of wall
 and CPU per launch and cores (CPU over wall): what Taichi's thread pool leaves of the machine at each length when
-no load imbalance exists.
+no load imbalance exists. Then it measures whether a launch lets other Python code run meanwhile (whether Taichi
+releases Python's global interpreter lock while its CPU kernels run): a second Python thread counts while the
+main one launches, against the same time with no launch.
 
 ``--run RUN`` (a run folder with ``refine/`` finished) then runs ``taichi-gs deblur RUN --quiet`` in this
 process under Taichi's kernel profiler, which times every offloaded task (each top-level loop of a launch). It
@@ -20,6 +22,7 @@ import argparse
 import bisect
 import math
 import resource
+import threading
 import time
 from pathlib import Path
 
@@ -76,6 +79,51 @@ def launch_curve(seconds: float) -> list[dict]:
             row[name] = {"wall_ms": 1e3 * wall / launches, "cpu_ms": 1e3 * used / launches, "cores": used / wall}
         rows.append(row)
     return rows
+
+
+def python_pace_during_launches(seconds: float, reps: int = 1024) -> float:
+    """How fast a second Python thread runs while this one is inside parallel launches of about ``reps`` x 100,000
+    ``sin()``, against its pace with no launch: near 0 when a launch holds the GIL, near 1 when it releases it."""
+    import taichi as ti
+
+    items = LOOPS[-1][0]
+    values = ti.ndarray(ti.f32, items)
+
+    @ti.kernel
+    def uniform(values: ti.types.ndarray(), items: ti.i32, reps: ti.i32):
+        for i in range(items):
+            x = 0.5
+            for _ in range(reps):
+                x = ti.sin(x) + 0.1
+            values[i] = x
+
+    uniform(values, items, 1)  # compile
+    ti.sync()
+    count, stop = [0], threading.Event()
+
+    def counter() -> None:
+        while not stop.is_set():
+            count[0] += 1
+
+    def pace(launching: bool) -> float:
+        start, before = time.perf_counter(), count[0]
+        while time.perf_counter() - start < seconds:
+            if launching:
+                uniform(values, items, reps)
+                ti.sync()
+            else:
+                time.sleep(0.01)
+        return (count[0] - before) / (time.perf_counter() - start)
+
+    thread = threading.Thread(target=counter, daemon=True)
+    thread.start()
+    try:
+        idle = pace(False)
+        busy = pace(True)
+    finally:
+        stop.set()
+        thread.join()
+    return busy / idle
 
 
 def uniform_cores(curve: list[dict], ms: float) -> float:
@@ -172,6 +220,9 @@ def main() -> None:
         p, s = row["parallel"], row["serial"]
         print(f"| {row['items']} x {row['reps']} | {p['wall_ms']:.3f} / {p['cpu_ms']:.3f} | {p['cores']:.3f} "
               f"| {s['wall_ms']:.3f} |")
+    share = python_pace_during_launches(args.seconds)
+    print(f"\nA second Python thread ran at {share:.1%} of its own pace while launches ran: Taichi "
+          f"{'holds' if share < 0.5 else 'releases'} Python's GIL while its CPU kernels run.")
     if args.run:
         tasks, wall, used = profile_stage3(args.run)
         report_tasks(tasks, curve, wall, used)
