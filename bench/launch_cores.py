@@ -20,10 +20,12 @@ timers cost a little) show how far its kernels are from it. RUN's ``deblur/`` is
 
 import argparse
 import bisect
+import functools
 import math
 import resource
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from ab import run_line
@@ -40,12 +42,10 @@ def cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def launch_curve(seconds: float) -> list[dict]:
-    """Per LOOPS entry: ms of wall and CPU per launch and cores, for the parallel and the serial loop."""
+@functools.cache
+def uniform_loops() -> tuple[Callable, Callable]:
+    """(parallel, serial) kernels of uniform work: item i of ``values`` goes through ``reps`` x ``sin()``."""
     import taichi as ti
-
-    values = ti.ndarray(ti.f32, max(items for items, _ in LOOPS))
-    values.fill(0.5)
 
     @ti.kernel
     def parallel(values: ti.types.ndarray(), items: ti.i32, reps: ti.i32):
@@ -64,6 +64,24 @@ def launch_curve(seconds: float) -> list[dict]:
                 x = ti.sin(x) + 0.1
             values[i] = x
 
+    return parallel, serial
+
+
+def uniform_values():
+    """The loops' values: one float per item of the largest loop, all 0.5."""
+    import taichi as ti
+
+    values = ti.ndarray(ti.f32, max(items for items, _ in LOOPS))
+    values.fill(0.5)
+    return values
+
+
+def launch_curve(seconds: float) -> list[dict]:
+    """Per LOOPS entry: ms of wall and CPU per launch and cores, for the parallel and the serial loop."""
+    import taichi as ti
+
+    values = uniform_values()
+    parallel, serial = uniform_loops()
     rows = []
     for items, reps in LOOPS:
         row = {"items": items, "reps": reps}
@@ -86,18 +104,9 @@ def python_pace_during_launches(seconds: float, reps: int = 1024) -> float:
     ``sin()``, against its pace with no launch: near 0 when a launch holds the GIL, near 1 when it releases it."""
     import taichi as ti
 
-    items = LOOPS[-1][0]
-    values = ti.ndarray(ti.f32, items)
-
-    @ti.kernel
-    def uniform(values: ti.types.ndarray(), items: ti.i32, reps: ti.i32):
-        for i in range(items):
-            x = 0.5
-            for _ in range(reps):
-                x = ti.sin(x) + 0.1
-            values[i] = x
-
-    uniform(values, items, 1)  # compile
+    values, parallel = uniform_values(), uniform_loops()[0]
+    items = values.shape[0]
+    parallel(values, items, 1)  # compile
     ti.sync()
     count, stop = [0], threading.Event()
 
@@ -109,7 +118,7 @@ def python_pace_during_launches(seconds: float, reps: int = 1024) -> float:
         start, before = time.perf_counter(), count[0]
         while time.perf_counter() - start < seconds:
             if launching:
-                uniform(values, items, reps)
+                parallel(values, items, reps)
                 ti.sync()
             else:
                 time.sleep(0.01)
