@@ -29,6 +29,7 @@ from kernel_tasks import init_with_profiler
 from launch_cores import profile_stage3, tasks_by_kind
 
 from taichi_gs.kernels.runtime import CPU_THREADS_ENV
+
 SHOWN = 12  # kinds of task listed, the longest on one thread first
 
 

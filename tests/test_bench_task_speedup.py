@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "task_speedup.py"
+sys.path.insert(0, str(SCRIPT.parent))
 
 from task_speedup import inside_outside, report, speedups  # noqa: E402
 
@@ -45,8 +46,7 @@ def test_task_speedup_profiles_a_run_folder_on_one_thread_and_the_default(tmp_pa
     from taichi_gs.synth import SynthConfig
 
     _, out = synthetic_refine_outputs(tmp_path, SynthConfig(width=48, height=32, frames=3, seed=1), voxel=0.08)
-    script = Path(__file__).resolve().parents[1] / "bench" / "task_speedup.py"
-    result = subprocess.run([sys.executable, str(script), "--run", str(out)], capture_output=True, text=True,
+    result = subprocess.run([sys.executable, str(SCRIPT), "--run", str(out)], capture_output=True, text=True,
                             timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "| blend:1 range_for |" in result.stdout
@@ -56,8 +56,7 @@ def test_task_speedup_profiles_a_run_folder_on_one_thread_and_the_default(tmp_pa
 
 def test_task_speedup_names_a_failed_stage(tmp_path):
     """A run folder that the stage refuses stops the script with the stage's own error."""
-    script = Path(__file__).resolve().parents[1] / "bench" / "task_speedup.py"
-    result = subprocess.run([sys.executable, str(script), "--run", str(tmp_path / "missing")], capture_output=True,
+    result = subprocess.run([sys.executable, str(SCRIPT), "--run", str(tmp_path / "missing")], capture_output=True,
                             text=True, timeout=300)
     assert result.returncode != 0
     assert "run folder not found" in result.stderr
