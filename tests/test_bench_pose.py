@@ -1,5 +1,7 @@
 """bench/pose.py: a jump of the reference scores as a break, the ATE between breaks aligns the stretches on
-either side of it separately, and a variant that changes only the graph starts from the pairs already computed."""
+either side of it separately, a variant that changes only the graph starts from the pairs already computed, the
+rotation error two independent estimates share against the reference is told from their own, and the oracle
+chains each pair's candidate nearest the reference."""
 
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 from format_fixtures import write_7scenes  # noqa: E402
 import pose as bench_pose  # noqa: E402
-from pose import OURS, pair_scores, reference_breaks, reference_relatives, run_ours, segment_ate  # noqa: E402
+from pose import (OURS, pair_scores, reference_breaks, reference_relatives, run_ours, segment_ate,  # noqa: E402
+                  shared_rotation_error_deg)
 
 from taichi_gs.evaluate import ate  # noqa: E402
 from taichi_gs.io.sequence import load_sequence  # noqa: E402
@@ -145,3 +148,40 @@ def test_the_7_scenes_grid_is_read_as_shipped_or_registered(tmp_path, monkeypatc
         assert name == label and not synthetic
         assert sequence.source["camera"] == camera
         assert np.allclose(sequence.gt_poses, load_sequence(tmp_path / "kitchen", camera=camera).gt_poses)
+
+
+def _rotated(T: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ cv2.Rodrigues(rotvec)[0]
+    return out
+
+
+def test_the_shared_rotation_error_keeps_what_two_estimates_have_in_common_and_drops_their_own_noise():
+    rng = np.random.default_rng(3)
+    truths = reference_relatives(_walk(401))
+    common = np.radians(0.2) * rng.standard_normal((400, 3)) / np.sqrt(3)  # 0.2 deg RMS, in both estimates
+    a = [_rotated(t, c + np.radians(0.3) * rng.standard_normal(3) / np.sqrt(3)) for t, c in zip(truths, common)]
+    b = [_rotated(t, c + np.radians(0.3) * rng.standard_normal(3) / np.sqrt(3)) for t, c in zip(truths, common)]
+    shared = shared_rotation_error_deg(a, b, truths)
+    assert 0.17 < shared < 0.23  # each estimate alone: 0.36 deg RMS
+    independent = [_rotated(t, np.radians(0.3) * rng.standard_normal(3) / np.sqrt(3)) for t in truths]
+    assert shared_rotation_error_deg(a[:200] + [None] * 200, b[:200] + [None] * 200, truths) > 0.15  # None: skipped
+    assert shared_rotation_error_deg(independent, b, truths) < 0.08
+    assert np.isnan(shared_rotation_error_deg([None] * 400, b, truths))
+
+
+def test_the_oracle_chains_the_candidate_nearest_the_reference_in_every_pair():
+    gt = _walk(6)
+    truths = reference_relatives(gt)
+    off = np.eye(4)
+    off[:3, 3] = [0.004, 0.0, 0.0]
+    pairs = []
+    for k, truth in enumerate(truths):
+        near, far = _rotated(truth, np.radians([0.01, 0.0, 0.0])), off @ truth
+        first, second = (far, near) if k % 2 else (near, far)  # the nearer one comes first or second
+        pairs.append({"transform": far.tolist(), "candidates": {"a": {"transform": first.tolist()},
+                                                                "b": {"transform": second.tolist()}}})
+    poses = bench_pose.oracle(SimpleNamespace(pairs=pairs), gt)
+    assert ate(poses, gt) < 1e-3
+    assert bench_pose.pair_errors_mm(poses, gt).max() < 0.1
+    assert bench_pose.pair_errors_mm(bench_pose.derived(SimpleNamespace(pairs=pairs), "ours no graph"), gt).min() > 3.9
