@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from taichi_gs.geometry import quat_to_rotmat, so3_log
+from taichi_gs.io.trajectory import read_tum_rows
 
 REGULAR = (0.8, 1.2)  # a step counts as regular within this fraction of the median sample interval
 ORDERS = (2, 3, 4)
@@ -48,7 +49,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("groundtruth", type=Path)
     args = parser.parse_args()
-    rows = np.loadtxt(args.groundtruth, comments="#")
+    rows = read_tum_rows(args.groundtruth)
+    rows = rows[np.argsort(rows[:, 0])]
     times, quaternions = rows[:, 0], rows[:, 4:8]
     print(f"{len(rows)} samples, median interval {1000 * np.median(np.diff(times)):.2f} ms")
     print("| difference order | jitter per sample, body x / y / z (deg) | RPE rotation floor (deg) |")

@@ -343,7 +343,7 @@ def shared_rotation_error_deg(a: list[np.ndarray | None], b: list[np.ndarray | N
     return float(np.degrees(np.sqrt(max(np.mean(products), 0.0))))
 
 
-def shared_error_line(name: str, reference: np.ndarray, result, ours: "Measured") -> str:
+def shared_error_line(name: str, reference: np.ndarray, result, ours: Measured) -> str:
     """What of ours' RPE rotation on ``name`` the colour-only and depth-only candidates share against the
     ``reference`` poses (``shared_rotation_error_deg``), beside each one's own RPE rotation."""
     truths = reference_relatives(reference)

@@ -2,8 +2,8 @@
 
     python bench/retime_reference.py GROUNDTRUTH.txt RGB.txt [--shift-ms -10] --out R.txt
 
-TUM RGB-D stamps each colour frame when the host received it: the stamps scatter by about a millisecond about a
-regular 30 Hz clock, and at 50-100 deg/s a millisecond is 0.05-0.1 deg of rotation. Here each frame's time is its
+TUM RGB-D's colour stamps scatter about a regular 30 Hz clock (fr1_rpy: by about a millisecond), and at
+50-100 deg/s a millisecond is 0.05-0.1 deg of rotation. Here each frame's time is its
 place on a straight line fitted through the stamps of the frames around it (``WINDOW`` either side, counted in
 periods so that a dropped frame does not bend the line), plus ``--shift-ms``. The motion capture is slerped at
 that time and written at the frame's own stamp, so ``bench/pose.py --sequence ... --reference R.txt`` scores a run
@@ -34,7 +34,7 @@ def regular_times(stamps: np.ndarray, window: int = WINDOW) -> np.ndarray:
     for i, stamp in enumerate(stamps):
         near = stamps[max(0, i - window): i + window + 1]
         periods = np.round((near - stamp) / period)
-        slope, offset = np.polyfit(periods, near - stamp, 1)  # relative to the stamp: seconds since 1970 lose digits
+        offset = np.polyfit(periods, near - stamp, 1)[1]  # relative to the stamp: seconds since 1970 lose digits
         times[i] = stamp + offset  # the line at 0 periods from this frame
     return times
 
@@ -55,13 +55,13 @@ def main() -> None:
     rows = read_tum_rows(args.groundtruth)
     rows = rows[np.argsort(rows[:, 0])]
     stamps = frame_stamps(args.frames)
-    times = regular_times(stamps) + args.shift_ms / 1000.0
-    poses = interpolate_poses(rows[:, 0], tum_rows_to_poses(rows), times, TOLERANCE_S)
+    regular = regular_times(stamps)
+    poses = interpolate_poses(rows[:, 0], tum_rows_to_poses(rows), regular + args.shift_ms / 1000.0, TOLERANCE_S)
     covered = np.all(np.isfinite(poses), axis=(1, 2))
     write_tum(args.out, stamps[covered], poses[covered],
               header=f"{args.groundtruth.name} at {args.frames.name}'s regular times {args.shift_ms:+g} ms, camera-to-world")
     print(f"{args.out}: {covered.sum()} of {len(stamps)} frames; stamps minus regular times: "
-          f"{1000 * np.std(stamps - regular_times(stamps)):.2f} ms standard deviation")
+          f"{1000 * np.std(stamps - regular):.2f} ms standard deviation")
 
 
 if __name__ == "__main__":
