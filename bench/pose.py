@@ -125,14 +125,17 @@ def run_ours(sequence, overrides: dict, work: Path, pair_caches: dict[str, Path]
     return result, seconds, extra
 
 
+def candidate_transforms(result, name: str) -> list[np.ndarray | None]:
+    """Each pair's transform from its candidate ``name`` in ours' run, None where the pair has no such candidate."""
+    return [None if (candidate := pair.get("candidates", {}).get(name)) is None else np.array(candidate["transform"])
+            for pair in result.pairs]
+
+
 def derived(result, name: str) -> np.ndarray:
     """Chained poses of ours' pair transforms (``ours no graph``) or of one candidate per pair
     (the chosen transform where that candidate is missing)."""
-    relatives = []
-    for pair in result.pairs:
-        candidate = pair.get("candidates", {}).get(name[5:]) if name.startswith("cand:") else None
-        relatives.append(np.array((candidate or pair)["transform"]))
-    return chain_poses(relatives)
+    alone = candidate_transforms(result, name[5:]) if name.startswith("cand:") else [None] * len(result.pairs)
+    return chain_poses([np.array(pair["transform"]) if T is None else T for pair, T in zip(result.pairs, alone)])
 
 
 def oracle(result, gt: np.ndarray) -> np.ndarray:
@@ -146,9 +149,7 @@ def oracle(result, gt: np.ndarray) -> np.ndarray:
     relatives = []
     for pair, truth in zip(result.pairs, reference_relatives(gt)):
         options = [np.array(c["transform"]) for c in pair.get("candidates", {}).values()] or [np.array(pair["transform"])]
-        if np.all(np.isfinite(truth)):
-            options.sort(key=lambda T: distance(T, truth))
-        relatives.append(options[0])
+        relatives.append(min(options, key=lambda T: distance(T, truth)) if np.all(np.isfinite(truth)) else options[0])
     return chain_poses(relatives)
 
 
@@ -347,8 +348,7 @@ def shared_error_line(name: str, reference: np.ndarray, result, ours: Measured) 
     """What of ours' RPE rotation on ``name`` the colour-only and depth-only candidates share against the
     ``reference`` poses (``shared_rotation_error_deg``), beside each one's own RPE rotation."""
     truths = reference_relatives(reference)
-    alone = {c: [None if pair.get("candidates", {}).get(c) is None else np.array(pair["candidates"][c]["transform"])
-                 for pair in result.pairs] for c in INDEPENDENT_CANDIDATES}
+    alone = {c: candidate_transforms(result, c) for c in INDEPENDENT_CANDIDATES}
     own = {c: trajectory_errors(derived(result, f"cand:{c}"), reference).rpe_rot_deg for c in alone}
     colour, depth = INDEPENDENT_CANDIDATES
     return (f"- {name}: ours {ours.rpe_rot_deg:.3f} deg; {colour} (colour) {own[colour]:.3f}, {depth} (depth) "

@@ -39,12 +39,6 @@ def regular_times(stamps: np.ndarray, window: int = WINDOW) -> np.ndarray:
     return times
 
 
-def frame_stamps(path: Path) -> np.ndarray:
-    """The time stamps of a TUM list file (``rgb.txt``: time and file name per line, # comments)."""
-    rows = [line.split()[0] for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
-    return np.array(rows, dtype=np.float64)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("groundtruth", type=Path)
@@ -54,7 +48,7 @@ def main() -> None:
     args = parser.parse_args()
     rows = read_tum_rows(args.groundtruth)
     rows = rows[np.argsort(rows[:, 0])]
-    stamps = frame_stamps(args.frames)
+    stamps = read_tum_rows(args.frames, columns=1)[:, 0]  # rgb.txt: the time stamp leads each line
     regular = regular_times(stamps)
     poses = interpolate_poses(rows[:, 0], tum_rows_to_poses(rows), regular + args.shift_ms / 1000.0, TOLERANCE_S)
     covered = np.all(np.isfinite(poses), axis=(1, 2))
