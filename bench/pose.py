@@ -57,7 +57,10 @@ the prior), each chained, and the part of it those two share against the referen
 two sensors' own errors do not correlate, so what they share is the reference's error or the motion as both
 recorded it, which no estimate from these frames can remove. Then issue 11's
 targets for ``ours`` on the run (``target_report``): on how many sequences each is met, and the misses with their
-figures (a folder given with ``--sequence`` counts as synthetic when ``taichi-gs synth`` made it).
+figures (a folder given with ``--sequence`` counts as synthetic when ``taichi-gs synth`` made it). Last, per
+sequence, ours' largest pair error against chance (``pair_tails.tail_line``): how likely an unbiased estimator with
+Gaussian pair errors of the same covariance keeps its largest within 3x the median, and whether its most outlying
+pair is an outlier of its own error distribution (leave-one-out Mahalanobis distance above the 99% quantile).
 """
 
 from __future__ import annotations
@@ -80,6 +83,8 @@ from taichi_gs.io.trajectory import read_tum
 from taichi_gs.pose_verify import frame_view, verify
 from taichi_gs.stages.pose import PRESETS as POSE_PRESETS
 from taichi_gs.stages.pose import PoseConfig, chain_poses, icp_levels, run_pose
+
+from pair_tails import tail_line
 
 SEVEN_SCENES = Path("/work/shared/data/7scenes_redkitchen_000-249")
 BREAK_RATIO = 3.0  # a reference pair scoring above this x its median is a break (see reference_breaks)
@@ -244,10 +249,15 @@ def run_dense_slam(sequence, voxel: float = 0.01, depth_max: float = 5.0):
     return np.stack(poses), (time.perf_counter() - start) / (len(sequence) - 1), f"{failed} failed"
 
 
+def pair_error_vectors_mm(poses: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Translation error (mm, n - 1 x 3, in the camera's axes) of each consecutive relative pose."""
+    return np.array([1000 * (invert(invert(poses[k]) @ poses[k + 1]) @ (invert(gt[k]) @ gt[k + 1]))[:3, 3]
+                     for k in range(len(gt) - 1)])
+
+
 def pair_errors_mm(poses: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """Translation error (mm) of each consecutive relative pose."""
-    return np.array([1000 * np.linalg.norm((invert(invert(poses[k]) @ poses[k + 1]) @ (invert(gt[k]) @ gt[k + 1]))[:3, 3])
-                     for k in range(len(gt) - 1)])
+    return np.linalg.norm(pair_error_vectors_mm(poses, gt), axis=1)
 
 
 def pair_scores(sequence, relatives: list[np.ndarray]) -> np.ndarray:
@@ -475,7 +485,7 @@ def main() -> None:
     print("| sequence | method | ATE (mm) | ATE between reference breaks (mm) | RPE trans (mm) | RPE rot (deg) | "
           "RPE rot drift (deg/pair) | rotation scale | pair err p50 / p90 / max (mm) | weak / pruned | s/pair |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    suspects, break_lines, measured, shared_lines = [], [], [], []
+    suspects, break_lines, measured, shared_lines, tail_lines = [], [], [], [], []
     for name, sequence, synthetic in sequences(args, root):
         gt = sequence.gt_poses
         truth_scores = pair_scores(sequence, reference_relatives(gt))
@@ -519,6 +529,8 @@ def main() -> None:
                 measured.append(measure(scored_name, method, poses, scored_gt, scored_breaks, seconds, extra,
                                         synthetic, sequence.intrinsics.width))
                 print(row(measured[-1]), flush=True)
+                if method == "ours":
+                    tail_lines.append(tail_line(scored_name, pair_error_vectors_mm(poses, scored_gt)))
         if ours is not None and args.gt_check_ratio > 0:
             suspects += ground_truth_check(name, sequence, ours, truth_scores, args.gt_check_ratio)
         if ours is not None:
@@ -534,6 +546,10 @@ def main() -> None:
               "recorded it):", *shared_lines, sep="\n")
     if any(m.method == "ours" for m in measured):
         print("\nIssue 11's targets for ours on this run:", *target_report(measured), sep="\n")
+    if tail_lines:
+        print("\nOurs' largest pair error against chance (bench/pair_tails.py: an unbiased estimator whose pair "
+              "errors are Gaussian with the sequence's own covariance; a whitened error above its 99% quantile is an "
+              "outlier):", *tail_lines, sep="\n")
     if args.break_ratio > 0:
         print(f"\nReference breaks, pairs whose ground truth scores above {args.break_ratio:g}x its median: "
               f"{len(break_lines) or 'none'}", *break_lines, sep="\n")
