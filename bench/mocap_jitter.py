@@ -19,19 +19,18 @@ from pathlib import Path
 
 import numpy as np
 
-from taichi_gs.geometry import quat_to_rotmat, so3_log
-from taichi_gs.io.trajectory import read_tum_rows
+from taichi_gs.geometry import so3_log
+from taichi_gs.io.trajectory import read_tum_rows, tum_rows_to_poses
 
 REGULAR = (0.8, 1.2)  # a step counts as regular within this fraction of the median sample interval
 ORDERS = (2, 3, 4)
 
 
-def jitter_per_axis_deg(times: np.ndarray, quaternions: np.ndarray, order: int) -> np.ndarray:
-    """Orientation noise per sample (deg, body x / y / z) from ``order``-th differences over regular stretches
-    (``quaternions`` x, y, z, w as TUM writes them)."""
+def jitter_per_axis_deg(times: np.ndarray, rotations: np.ndarray, order: int) -> np.ndarray:
+    """Orientation noise per sample (deg, body x / y / z) of the sampled ``rotations`` (N x 3 x 3) from
+    ``order``-th differences over regular stretches."""
     steps = np.diff(times)
     regular = (steps > REGULAR[0] * np.median(steps)) & (steps < REGULAR[1] * np.median(steps))
-    rotations = quat_to_rotmat(np.roll(quaternions, 1, axis=1))  # x, y, z, w -> w, x, y, z
     increments = np.degrees([so3_log(a.T @ b) for a, b in zip(rotations[:-1], rotations[1:])])
     differences, usable = increments, regular
     for _ in range(order - 1):
@@ -51,12 +50,12 @@ def main() -> None:
     args = parser.parse_args()
     rows = read_tum_rows(args.groundtruth)
     rows = rows[np.argsort(rows[:, 0])]
-    times, quaternions = rows[:, 0], rows[:, 4:8]
+    times, rotations = rows[:, 0], tum_rows_to_poses(rows)[:, :3, :3]
     print(f"{len(rows)} samples, median interval {1000 * np.median(np.diff(times)):.2f} ms")
     print("| difference order | jitter per sample, body x / y / z (deg) | RPE rotation floor (deg) |")
     print("|---|---|---|")
     for order in ORDERS:
-        jitter = jitter_per_axis_deg(times, quaternions, order)
+        jitter = jitter_per_axis_deg(times, rotations, order)
         print(f"| {order} | {' / '.join(f'{j:.3f}' for j in jitter)} | {rpe_rotation_floor_deg(jitter):.3f} |")
 
 

@@ -25,6 +25,8 @@ Both lean against excusing a miss.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 
@@ -51,9 +53,10 @@ def whitened_errors(errors: np.ndarray) -> np.ndarray:
     return np.sqrt((n - 1) * leverage / np.maximum(1.0 - leverage, 1e-12))
 
 
+@lru_cache
 def whitened_error_quantile(n: int, quantile: float = 0.99, draws: int = 20000, seed: int = 0) -> float:
     """The ``quantile`` of the largest of n whitened errors (``whitened_errors``) over n zero-mean Gaussian errors
-    (any covariance)."""
+    (any covariance); computed once per argument set."""
     samples = np.random.default_rng(seed).standard_normal((draws, n, 3))
     return float(np.quantile(whitened_errors(samples).max(axis=1), quantile))
 

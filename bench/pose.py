@@ -529,14 +529,13 @@ def main() -> None:
                 measured.append(measure(scored_name, method, poses, scored_gt, scored_breaks, seconds, extra,
                                         synthetic, sequence.intrinsics.width))
                 print(row(measured[-1]), flush=True)
-                if method == "ours":
-                    tail_lines.append(tail_line(scored_name, pair_error_vectors_mm(poses, scored_gt)))
         if ours is not None and args.gt_check_ratio > 0:
             suspects += ground_truth_check(name, sequence, ours, truth_scores, args.gt_check_ratio)
         if ours is not None:
             for scored_name, scored_gt, _ in scorings:
                 ours_row = next(m for m in measured if m.sequence == scored_name and m.method == "ours")
                 shared_lines.append(shared_error_line(scored_name, scored_gt, ours, ours_row))
+                tail_lines.append(tail_line(scored_name, pair_error_vectors_mm(ours.poses, scored_gt)))
     if args.gt_check_ratio > 0 and "ours" in methods:
         print(f"\nGround-truth check, pairs whose ground truth scores above {args.gt_check_ratio:g}x ours: "
               f"{len(suspects) or 'none'}", *suspects, sep="\n")

@@ -15,7 +15,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from mocap_jitter import jitter_per_axis_deg, rpe_rotation_floor_deg  # noqa: E402
 
 from taichi_gs.evaluate import rpe  # noqa: E402
-from taichi_gs.geometry import rotmat_to_quat  # noqa: E402
 from taichi_gs.io.sequence import interpolate_poses  # noqa: E402
 
 NOISE_DEG = np.array([0.06, 0.03, 0.02])
@@ -37,17 +36,12 @@ def _mocap(rng: np.random.Generator, seconds: float = 30.0) -> tuple[np.ndarray,
     return times, truth, noisy
 
 
-def _tum_quaternions(poses: np.ndarray) -> np.ndarray:
-    """The poses' rotations as TUM writes them: x, y, z, w."""
-    return np.roll(np.array([rotmat_to_quat(T[:3, :3]) for T in poses]), -1, axis=1)
-
-
 def test_the_jitter_of_noisy_samples_is_recovered_under_a_fast_motion():
     times, truth, noisy = _mocap(np.random.default_rng(0))
     for order in (3, 4):
-        np.testing.assert_allclose(jitter_per_axis_deg(times, _tum_quaternions(noisy), order), NOISE_DEG, rtol=0.12)
+        np.testing.assert_allclose(jitter_per_axis_deg(times, noisy[:, :3, :3], order), NOISE_DEG, rtol=0.12)
     # without noise the differences are the motion's own: far below the noise above
-    assert np.all(jitter_per_axis_deg(times, _tum_quaternions(truth), 3) < 0.1 * NOISE_DEG)
+    assert np.all(jitter_per_axis_deg(times, truth[:, :3, :3], 3) < 0.1 * NOISE_DEG)
 
 
 def test_the_floor_is_the_rpe_rotation_of_exact_poses_against_frames_slerped_from_noisy_samples():

@@ -15,8 +15,7 @@ sys.path.insert(0, str(BENCH))
 
 from retime_reference import regular_times  # noqa: E402
 
-from taichi_gs.geometry import rotmat_to_quat  # noqa: E402
-from taichi_gs.io.trajectory import read_tum  # noqa: E402
+from taichi_gs.io.trajectory import read_tum, write_tum  # noqa: E402
 
 PERIOD = 1 / 30
 RATE = np.radians(60.0)  # the capture turns about z at 60 deg/s
@@ -37,11 +36,10 @@ def test_scattered_stamps_come_back_on_the_regular_clock():
 def test_the_reference_is_written_at_the_stamps_with_the_pose_at_the_regular_time_plus_the_shift(tmp_path):
     clock, stamps = _clock_and_stamps(np.random.default_rng(1))
     capture = np.arange(99.0, 105.0, 0.01)
-    rows = []
-    for t in capture:
-        q = rotmat_to_quat(cv2.Rodrigues(np.array([0.0, 0.0, RATE * (t - 99.0)]))[0])  # w, x, y, z
-        rows.append(f"{t:.4f} 0 0 0 {q[1]:.9f} {q[2]:.9f} {q[3]:.9f} {q[0]:.9f}")
-    (tmp_path / "groundtruth.txt").write_text("# timestamp tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
+    poses = np.tile(np.eye(4), (len(capture), 1, 1))
+    for k, t in enumerate(capture):
+        poses[k, :3, :3] = cv2.Rodrigues(np.array([0.0, 0.0, RATE * (t - 99.0)]))[0]
+    write_tum(tmp_path / "groundtruth.txt", capture, poses)
     (tmp_path / "rgb.txt").write_text("# timestamp filename\n" + "".join(f"{s:.6f} rgb/{s:.6f}.png\n" for s in stamps))
     subprocess.run([sys.executable, str(BENCH / "retime_reference.py"), str(tmp_path / "groundtruth.txt"),
                     str(tmp_path / "rgb.txt"), "--shift-ms", "-10", "--out", str(tmp_path / "R.txt")], check=True)
