@@ -82,7 +82,8 @@ from taichi_gs.io.sequence import load_sequence
 from taichi_gs.io.trajectory import read_tum
 from taichi_gs.pose_verify import frame_view, verify
 from taichi_gs.stages.pose import PRESETS as POSE_PRESETS
-from taichi_gs.stages.pose import PoseConfig, chain_poses, icp_levels, run_pose
+from taichi_gs.stages.pose import PoseConfig, chain_poses, run_pose
+from taichi_gs.stages.pose_pair import icp_levels
 
 from pair_tails import tail_line
 

@@ -45,7 +45,8 @@ from taichi_gs.io.sequence import Sequence, load_sequence, read_color
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.noreference import gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from taichi_gs.plots import image_grid
-from taichi_gs.stages.pose import PoseConfig, icp_levels
+from taichi_gs.stages.pose_config import PoseConfig
+from taichi_gs.stages.pose_pair import icp_levels
 
 FLOOR_NEIGHBOURS = 2  # stretch frames nearest in view that the floor warps into each reference
 GRID_VIEWS = 4  # references shown in each arm's image grid

@@ -189,7 +189,7 @@ def install(profiler: Profiler) -> None:
     from . import deblur_model, density, flow, pipeline, refine_model
     from .io import sequence
     from .kernels import affine, blur, losses, optim, splat, warp
-    from .stages import checkpoint, deblur, divergence, pose, refine
+    from .stages import checkpoint, deblur, divergence, pose, pose_edges, pose_frames, pose_pair, refine
 
     profiler.sync = splat.sync
     _wrap_forward(splat.Rasterizer, profiler)
@@ -215,15 +215,19 @@ def install(profiler: Profiler) -> None:
         (checkpoint, "save", "checkpoints (I/O)"),
         (deblur, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
         (refine, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
-        (flow, "dis_flow", "optical flow (DIS)"), (pose, "dis_flow", "optical flow (DIS)"),
-        (pose, "_flow_solve", "flow solve (se(3))"), (pose, "_add_joint", "joint solve (se(3))"),
-        (pose, "sample_pair", "flow samples"), (pose, "joint_normals", "depth normals"),
-        (pose, "depth_cloud", "point clouds (Open3D; import on first use)"),
-        (pose, "prepare_icp", "ICP"), (pose, "align", "ICP"),
-        (pose, "rgbd_odometry", "RGB-D odometry (Open3D)"),
-        (pose, "frame_view", "verification"), (pose, "verify", "verification"),
-        (pose, "flow_disagreement", "verification"),
-        (pose, "_information", "pose graph: information matrices"), (pose, "optimise", "pose graph: optimisation"),
+        (flow, "dis_flow", "optical flow (DIS)"), (pose_pair, "dis_flow", "optical flow (DIS)"),
+        (pose_pair, "_flow_solve", "flow solve (se(3))"), (pose_pair, "add_joint", "joint solve (se(3))"),
+        (pose_edges, "add_joint", "joint solve (se(3))"),
+        (pose_pair, "sample_pair", "flow samples"), (pose_edges, "sample_pair", "flow samples"),
+        (pose_pair, "joint_normals", "depth normals"), (pose_frames, "joint_normals", "depth normals"),
+        *[(module, "depth_cloud", "point clouds (Open3D; import on first use)")
+          for module in (pose, pose_pair, pose_frames, pose_edges)],
+        (pose_pair, "prepare_icp", "ICP"), (pose_pair, "align", "ICP"), (pose_edges, "align", "ICP"),
+        *[(module, "rgbd_odometry", "RGB-D odometry (Open3D)") for module in (pose_pair, pose_edges)],
+        (pose_pair, "frame_view", "verification"), (pose_frames, "frame_view", "verification"),
+        (pose_pair, "verify", "verification"), (pose_pair, "flow_disagreement", "verification"),
+        (pose_edges, "_information", "pose graph: information matrices"),
+        (pose_edges, "optimise", "pose graph: optimisation"),
         (pose, "fuse_points", "fused point cloud"),
         # frame reads in every stage, counted once each (not their callers, such as stage 3's _load_frames)
         (sequence.Sequence, "color", "input frames (I/O)"), (sequence.Sequence, "depth", "input frames (I/O)"),

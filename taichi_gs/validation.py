@@ -16,7 +16,7 @@ from typing import Any
 
 from .errors import InputError
 from .flow import DIS_PRESETS
-from .stages.pose import CANDIDATE_NAMES
+from .stages.pose_pair import CANDIDATE_NAMES
 
 Check = Callable[[Any], bool]
 

@@ -13,11 +13,16 @@ import pytest
 from test_pose_scene import MOTION, pair, render, small_K
 
 import taichi_gs.stages.pose as pose_stage
+import taichi_gs.stages.pose_edges as pose_edges
+import taichi_gs.stages.pose_frames as pose_frames
+import taichi_gs.stages.pose_pair as pose_pair
 from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert, se3_exp, se3_log
 from taichi_gs.io.ply import read_point_cloud
 from taichi_gs.io.trajectory import read_tum
-from taichi_gs.stages.pose import METHOD_ONLY, PoseConfig, estimate_relative_pose, run_pose
+from taichi_gs.stages.pose import run_pose
+from taichi_gs.stages.pose_config import METHOD_ONLY, PoseConfig
+from taichi_gs.stages.pose_pair import estimate_relative_pose
 
 W, H = 160, 120
 
@@ -130,7 +135,7 @@ def test_information_clouds_keep_at_most_the_cap_and_the_matrix_shape():
     matrices = {}
     for cap in (0, 5000):
         config = PoseConfig(graph_info_max_points=cap)
-        clouds = [pose_stage._information_cloud(d, K, config) for d in noisy]
+        clouds = [pose_frames._information_cloud(d, K, config) for d in noisy]
         sizes = [len(c.points) for c in clouds]
         assert all(n <= 5000 for n in sizes) if cap else all(n > 30000 for n in sizes)  # 1 cm noise: 2 cm voxels in layers
         info = np.asarray(open3d().pipelines.registration.get_information_matrix_from_point_clouds(
@@ -179,12 +184,12 @@ def test_one_prepared_icp_pyramid_aligns_from_any_start_as_a_fresh_one():
 def test_icp_results_that_coincide_share_one_rgbd_odometry_run(monkeypatch):
     color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
     starts = []
-    original = pose_stage.rgbd_odometry
-    monkeypatch.setattr(pose_stage, "rgbd_odometry",
+    original = pose_pair.rgbd_odometry
+    monkeypatch.setattr(pose_pair, "rgbd_odometry",
                         lambda *args, **kwargs: starts.append(args[5].copy()) or original(*args, **kwargs))
     result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=PoseConfig())
     icp, icp_prior = (np.array(result.candidates[n]["transform"]) for n in ("icp", "icp-prior"))
-    assert np.abs(icp - icp_prior).max() <= pose_stage.SAME_START_ATOL  # both ICP runs converge here
+    assert np.abs(icp - icp_prior).max() <= pose_pair.SAME_START_ATOL  # both ICP runs converge here
     assert len(starts) == 1  # one odometry run serves both
     np.testing.assert_array_equal(result.candidates["rgbd-icp"]["transform"], result.candidates["rgbd-icp-prior"]["transform"])
 
@@ -194,9 +199,9 @@ def test_distinct_starts_each_get_their_own_run():
     run = lambda start: calls.append(1) or start[0, 3]  # noqa: E731
     first, second = np.eye(4), np.eye(4)
     second[0, 3] = 1e-6
-    assert pose_stage._run_once(runs, first, run) == 0.0
-    assert pose_stage._run_once(runs, first + 1e-12, run) == 0.0  # within SAME_START_ATOL: reused
-    assert pose_stage._run_once(runs, second, run) == 1e-6
+    assert pose_pair._run_once(runs, first, run) == 0.0
+    assert pose_pair._run_once(runs, first + 1e-12, run) == 0.0  # within SAME_START_ATOL: reused
+    assert pose_pair._run_once(runs, second, run) == 1e-6
     assert len(calls) == 2
 
 
@@ -249,10 +254,10 @@ def test_rerun_reads_cached_pairs_and_recomputes_after_a_config_change(tmp_path,
 
 def test_each_frame_view_is_computed_once_for_pairs_and_graph(tmp_path, walk_sequence, monkeypatch):
     computed, edges = [], []
-    original_view, original_edge = pose_stage.frame_view, pose_stage._graph_edge
-    monkeypatch.setattr(pose_stage, "frame_view",
+    original_view, original_edge = pose_frames.frame_view, pose_edges._graph_edge
+    monkeypatch.setattr(pose_frames, "frame_view",
                         lambda color, *a, **k: computed.append(color) or original_view(color, *a, **k))
-    monkeypatch.setattr(pose_stage, "_graph_edge", lambda *a, **k: edges.append(1) or original_edge(*a, **k))
+    monkeypatch.setattr(pose_edges, "_graph_edge", lambda *a, **k: edges.append(1) or original_edge(*a, **k))
     run_pose(walk_sequence, tmp_path, PoseConfig())
     assert len(edges) == 5  # skip edges (i, i + 2) and (i, i + 3) verified on the pairs' views
     frames = [[j for j, color in enumerate(computed) if np.shares_memory(color, walk_sequence.color(i))]
@@ -262,12 +267,12 @@ def test_each_frame_view_is_computed_once_for_pairs_and_graph(tmp_path, walk_seq
 
 def test_the_graph_pass_slides_the_frame_cache_once_from_where_the_pairs_left_it(tmp_path, monkeypatch):
     sequence = SceneSequence(walk(12))
-    monkeypatch.setattr(pose_stage.FrameCache.__init__, "__defaults__", (6,))  # keep 6 frames
+    monkeypatch.setattr(pose_frames.FrameCache.__init__, "__defaults__", (6,))  # keep 6 frames
     computed, informed = [], []
-    original_view, original_cloud = pose_stage.frame_view, pose_stage._information_cloud
-    monkeypatch.setattr(pose_stage, "frame_view",
+    original_view, original_cloud = pose_frames.frame_view, pose_frames._information_cloud
+    monkeypatch.setattr(pose_frames, "frame_view",
                         lambda color, *a, **k: computed.append(color) or original_view(color, *a, **k))
-    monkeypatch.setattr(pose_stage, "_information_cloud",
+    monkeypatch.setattr(pose_frames, "_information_cloud",
                         lambda depth, *a, **k: informed.append(depth) or original_cloud(depth, *a, **k))
     result = run_pose(sequence, tmp_path, PoseConfig(threads=1))  # one thread: the frames in the serial order
     counts = [sum(np.shares_memory(c, sequence.color(i)) for c in computed) for i in range(len(sequence))]
@@ -281,13 +286,14 @@ def test_the_graph_pass_slides_the_frame_cache_once_from_where_the_pairs_left_it
 def test_graph_edges_take_their_own_odometry_iterations_and_pairs_stay_cached(tmp_path, walk_sequence, monkeypatch):
     run_pose(walk_sequence, tmp_path, PoseConfig())
     iterations = []
-    original = pose_stage.rgbd_odometry
+    original = pose_pair.rgbd_odometry
 
     def recording(*args, **kwargs):
         iterations.append(kwargs["iterations"] if "iterations" in kwargs else args[6])  # pairs pass it by name
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(pose_stage, "rgbd_odometry", recording)
+    for module in (pose_pair, pose_edges):  # the pairs' and the graph's
+        monkeypatch.setattr(module, "rgbd_odometry", recording)
     light = PoseConfig(graph_rgbd_iterations=(10, 5, 3))
     assert light.pair_key() == PoseConfig().pair_key()
     run_pose(walk_sequence, tmp_path, light)
@@ -298,31 +304,31 @@ def test_long_edges_join_only_cameras_as_close_as_a_loop_closure():
     config = PoseConfig(graph_long_spans=(8, 16), graph_long_every=1, loop_max_distance_m=0.3, loop_max_angle_deg=30.0)
     line = np.tile(np.eye(4), (40, 1, 1))
     line[:, 0, 3] = 0.02 * np.arange(40)  # 2 cm a frame: 16 cm at span 8, 32 cm at span 16
-    assert pose_stage._long_candidates(line, config) == [(i, i + 8) for i in range(32)]
+    assert pose_edges._long_candidates(line, config) == [(i, i + 8) for i in range(32)]
     turn = np.tile(np.eye(4), (40, 1, 1))
     for i in range(40):
         turn[i, :3, :3] = se3_exp(np.array([0.0, 0.0, 0.0, 0.0, np.radians(3.0 * i), 0.0]))[:3, :3]  # 3 deg a frame
-    assert pose_stage._long_candidates(turn, config) == [(i, i + 8) for i in range(32)]
-    assert pose_stage._long_candidates(line, PoseConfig(graph_long_spans=())) == []
-    assert pose_stage._long_candidates(line[:12], config) == [(i, i + 8) for i in range(4)]  # no span of 16 there
+    assert pose_edges._long_candidates(turn, config) == [(i, i + 8) for i in range(32)]
+    assert pose_edges._long_candidates(line, PoseConfig(graph_long_spans=())) == []
+    assert pose_edges._long_candidates(line[:12], config) == [(i, i + 8) for i in range(4)]  # no span of 16 there
     every_4th = dataclasses.replace(config, graph_long_every=4)
     default = PoseConfig()
     assert (default.graph_long_spans, default.graph_long_every) == ((16, 32), 4)
-    assert pose_stage._long_candidates(line, every_4th) == [(i, i + 8) for i in range(0, 32, 4)]
+    assert pose_edges._long_candidates(line, every_4th) == [(i, i + 8) for i in range(0, 32, 4)]
     line[12:, 0, 3] += 1.0  # a 1 m jump between frames 11 and 12: no close pair spans it
-    assert pose_stage._long_candidates(line, every_4th) == [(0, 8), (12, 20), (16, 24), (20, 28), (24, 32), (28, 36)]
+    assert pose_edges._long_candidates(line, every_4th) == [(0, 8), (12, 20), (16, 24), (20, 28), (24, 32), (28, 36)]
 
 
 def test_long_edges_are_tried_without_the_score_cap_and_share_the_pair_cache(tmp_path, walk_sequence, monkeypatch):
     run_pose(walk_sequence, tmp_path, PoseConfig())
     tried = []
-    original = pose_stage._graph_edge
+    original = pose_edges._graph_edge
 
     def recording(frames, i, j, poses, K, config, kind, max_score):
         tried.append((kind, j - i, max_score))
         return original(frames, i, j, poses, K, config, kind, max_score)
 
-    monkeypatch.setattr(pose_stage, "_graph_edge", recording)
+    monkeypatch.setattr(pose_edges, "_graph_edge", recording)
     config = PoseConfig(graph_long_spans=(4,))
     assert config.pair_key() == PoseConfig().pair_key()
     result = run_pose(walk_sequence, tmp_path, config)
@@ -378,8 +384,8 @@ def test_exception_in_one_pair_is_recorded_and_the_run_continues(tmp_path, walk_
 def test_threads_give_the_serial_result_and_share_each_frame_once(tmp_path, walk_sequence, monkeypatch):
     serial = run_pose(walk_sequence, tmp_path / "one", PoseConfig(threads=1))
     computed, workers = [], set()
-    original_view, original_start = pose_stage.frame_view, pose_stage.start_pair
-    monkeypatch.setattr(pose_stage, "frame_view",
+    original_view, original_start = pose_frames.frame_view, pose_stage.start_pair
+    monkeypatch.setattr(pose_frames, "frame_view",
                         lambda color, *a, **k: computed.append(color) or original_view(color, *a, **k))
     monkeypatch.setattr(pose_stage, "start_pair",
                         lambda *a, **k: workers.add(threading.current_thread().name) or original_start(*a, **k))
@@ -425,15 +431,15 @@ def test_stage_does_not_import_taichi():
 
 
 def test_near_tied_candidates_far_enough_apart_become_alternative_edges(monkeypatch):
-    monkeypatch.setattr(pose_stage, "_information", lambda frames, i, j, T, config: np.eye(6))
+    monkeypatch.setattr(pose_edges, "_information", lambda frames, i, j, T, config: np.eye(6))
     moved = {mm: se3_exp(np.array([mm / 1000, 0.0, 0.0, 0.0, 0.0, 0.0])) @ MOTION for mm in (0, 5, 5.5, 10, 20)}
     scores = {"constant-velocity": (0.100, 20), "flow": (0.1015, 5.5), "joint": (0.101, 5),
               "icp": (0.103, 10), "rgbd-icp": (0.100, 0), "rgbd-icp-prior": (0.1001, 0)}
     candidates = {name: {"score": score, "transform": moved[mm].tolist()} for name, (score, mm) in scores.items()}
     config = PoseConfig(verify_margin=0.02, graph_near_tie_mm=2.0, graph_weak_weight=0.01)
     for weak in (False, True):
-        relative = pose_stage.RelativePose(MOTION, "rgbd-icp", weak=weak, candidates=candidates)
-        ties = pose_stage._near_tie_edges(3, relative, None, config)
+        relative = pose_pair.RelativePose(MOTION, "rgbd-icp", weak=weak, candidates=candidates)
+        ties = pose_edges._near_tie_edges(3, relative, None, config)
         # the prior is never offered, icp scores outside the 2% tie, rgbd-icp-prior sits on the chosen
         # transform, and joint lies 0.5 mm from flow, which comes first in the candidates' order
         assert [(e.estimate, e.source, e.target, e.kind, e.weak) for e in ties] == [("flow", 3, 4, "odometry", weak)]

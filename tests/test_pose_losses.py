@@ -10,7 +10,8 @@ from test_pose_scene import MOTION, exact_flow, pair
 
 from taichi_gs.geometry import invert, se3_exp, se3_log
 from taichi_gs.icp import reliable_depth_mask
-from taichi_gs.stages.pose import PoseConfig, _add_joint, sample_pair
+from taichi_gs.stages.pose_config import PoseConfig
+from taichi_gs.stages.pose_pair import add_joint, sample_pair
 from taichi_gs.stages.pose_losses import (depth_consistency_residuals, flow_residuals, photometric_residuals,
                                           point_to_plane_residuals, warp)
 from taichi_gs.stages.pose_solver import active_terms, linearise, solve
@@ -144,7 +145,7 @@ def test_joint_solve_corrects_a_biased_flow_with_depth():
     flow_only = solve(np.eye(4), samples, config.solver_settings(with_all_terms=False))
     flow_solve = solve(flow_only.T, samples, config.solver_settings(with_all_terms=True))
     candidates = {}
-    _add_joint(candidates, samples, flow_solve.T, config)
+    add_joint(candidates, samples, flow_solve.T, config)
     joint = candidates["joint"].transform
 
     def error_mm(T):

@@ -11,7 +11,8 @@ from test_pose_scene import pair
 from taichi_gs.geometry import invert, se3_exp, se3_log
 from taichi_gs.icp import depth_cloud
 from taichi_gs.pose_verify import depth_normals, frame_view, verify
-from taichi_gs.stages.pose import PoseConfig, estimate_relative_pose
+from taichi_gs.stages.pose_config import PoseConfig
+from taichi_gs.stages.pose_pair import estimate_relative_pose
 
 START = se3_exp(np.array([0.1, 0.55, 1.5, 0.0, 0.0, 0.0]))  # facing the back wall 1.5 m away: a strip of floor
 MOTION = se3_exp(np.array([0.01, 0.005, 0.0, 0.0, 0.008, 0.0]))
@@ -79,7 +80,7 @@ def test_flow_check_catches_a_slide_along_a_plain_wall_that_the_score_misses():
 
     from taichi_gs.flow import rigid_flow
     from taichi_gs.pose_verify import FlowCheck, flow_disagreement
-    from taichi_gs.stages.pose import Candidate, _choose
+    from taichi_gs.stages.pose_pair import Candidate, choose
 
     (frame_a, frame_b), K, true = _wall_pair(1.3)
     config = PoseConfig()
@@ -91,8 +92,8 @@ def test_flow_check_catches_a_slide_along_a_plain_wall_that_the_score_misses():
     assert flow_disagreement(true, views[0].depth, K, check, 2.0) < 1e-6
     assert flow_disagreement(slid, views[0].depth, K, check, 2.0) > 0.1
     no_check = dataclasses.replace(config, verify_flow_weight=0.0)
-    assert _choose(candidates, views, K, no_check, flow_check=check).estimate == "rgbd-icp"  # score alone: blind
-    chosen = _choose(candidates, views, K, config, flow_check=check)
+    assert choose(candidates, views, K, no_check, flow_check=check).estimate == "rgbd-icp"  # score alone: blind
+    chosen = choose(candidates, views, K, config, flow_check=check)
     assert chosen.estimate == "flow" and chosen.candidates["rgbd-icp"]["flow"] > 0.1
 
 
@@ -132,22 +133,23 @@ def test_graph_edge_gets_a_joint_candidate_on_its_own_flows(monkeypatch):
     ``graph_joint = false`` there is none."""
     from test_pose import SceneSequence
 
-    from taichi_gs.stages import pose as pose_stage
+    from taichi_gs.stages import pose_edges, pose_frames
 
     sequence = SceneSequence(np.stack([START, START @ invert(MOTION)]))
     K = sequence.intrinsics.K()
     slid_chain = np.stack([START, START @ invert(SLIDE @ MOTION)])
     seen = {}
-    original = pose_stage._choose
+    original = pose_edges.choose
 
     def recording(candidates, *args, **kwargs):
         seen.clear()
         seen.update(candidates)
         return original(candidates, *args, **kwargs)
 
-    monkeypatch.setattr(pose_stage, "_choose", recording)
+    monkeypatch.setattr(pose_edges, "choose", recording)
     config = PoseConfig()
-    edge = pose_stage._graph_edge(pose_stage.FrameCache(sequence, K, config), 0, 1, slid_chain, K, config, "skip", np.inf)
+    frames = pose_frames.FrameCache(sequence, K, config)
+    edge = pose_edges._graph_edge(frames, 0, 1, slid_chain, K, config, "skip", np.inf)
     assert _error_mm(seen["chain"].transform) > 20.0
     assert _error_mm(seen["rgbd-chain"].transform) > 1.0  # RGB-D odometry from the chain: 3.2 mm measured
     assert _error_mm(seen["joint-chain"].transform) < 0.5  # 0.14 mm measured
@@ -155,7 +157,7 @@ def test_graph_edge_gets_a_joint_candidate_on_its_own_flows(monkeypatch):
 
     no_joint = PoseConfig(graph_joint=False)
     assert no_joint.pair_key() == config.pair_key()  # a graph setting: the pairs stay cached
-    pose_stage._graph_edge(pose_stage.FrameCache(sequence, K, no_joint), 0, 1, slid_chain, K, no_joint, "skip", np.inf)
+    pose_edges._graph_edge(pose_frames.FrameCache(sequence, K, no_joint), 0, 1, slid_chain, K, no_joint, "skip", np.inf)
     assert "joint-chain" not in seen
 
 

@@ -21,7 +21,8 @@ from taichi_gs.geometry import se3_exp
 from taichi_gs.rolling_shutter import (MAX_DESKEW_WIDTH_FRACTION, DeskewedSequence, deskew_maps, deskewing_motions,
                                        readout_motions, readout_px, stage_readout_ms)
 from taichi_gs.stages import refine as refine_stage
-from taichi_gs.stages.pose import METHOD_ONLY, PRESETS, PoseConfig, pose_readout_ms, run_pose
+from taichi_gs.stages.pose import pose_readout_ms, run_pose
+from taichi_gs.stages.pose_config import METHOD_ONLY, PRESETS, PoseConfig
 
 KINECT_V1 = {"format": "tum", "camera": "fr1"}
 
