@@ -69,7 +69,7 @@ from .splats import Splats
 
 __all__ = [
     "Camera", "DeviceGaussians", "Rasterizer", "View", "RenderGrads", "RenderResult", "rasterize",
-    "virtual_pose", "exposure_pose_gradients", "to_device", "losses", "blur", "affine", "density_stats",
+    "to_device", "losses", "blur", "affine", "density_stats",
     "Adam", "render_views", "upload_splats", "warp", "host_copy",
 ]
 

@@ -8,7 +8,6 @@ import json
 import logging
 import os
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -27,7 +26,7 @@ from taichi_gs.io.sequence import load_sequence
 from taichi_gs.io.trajectory import write_tum
 from taichi_gs.pipeline import write_run_info
 from taichi_gs.synth import SynthConfig, generate
-from taichi_gs.terminal import PlainProgress, configure_logging, console, progress_columns
+from taichi_gs.terminal import PlainProgress, configure_logging, progress_columns
 
 ROOT = Path(__file__).resolve().parents[1]
 runner = CliRunner()

@@ -12,8 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from format_fixtures import (FRAMES, PLANE_Z, SCANNET_COLOR_K, SCANNET_DEPTH_K, SMALL_K, TUM_FR1, WRITERS, backproject, render,
-                             truth_poses, write_7scenes, write_own, write_replica, write_scannet, write_stray,
-                             write_tum)
+                             truth_poses, write_7scenes, write_own, write_replica, write_scannet, write_stray)
 from taichi_gs.cli import app
 from taichi_gs.errors import InputError
 from taichi_gs.io.convert import import_sequence

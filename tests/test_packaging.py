@@ -52,6 +52,23 @@ def test_every_third_party_import_of_the_package_is_a_declared_dependency():
     assert not missing, f"imported but not in pyproject dependencies: {sorted(missing)}"
 
 
+def test_every_name_a_module_exports_exists():
+    """``from taichi_gs.<module> import *`` works: each name in a module's ``__all__`` is defined there."""
+    import ast
+    import importlib
+
+    missing = []
+    for path in (ROOT / "taichi_gs").rglob("*.py"):
+        listed = [node for node in ast.parse(path.read_text()).body if isinstance(node, ast.Assign)
+                  and any(isinstance(target, ast.Name) and target.id == "__all__" for target in node.targets)]
+        if not listed:
+            continue
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        module = importlib.import_module(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+        missing += [f"{module.__name__}.{name}" for name in module.__all__ if not hasattr(module, name)]
+    assert not missing, f"listed in __all__ but not defined: {missing}"
+
+
 def test_license_is_an_spdx_expression():
     assert PROJECT["license"] == "Apache-2.0"
 

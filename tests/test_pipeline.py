@@ -6,7 +6,6 @@ import dataclasses
 import json
 import shutil
 from contextlib import contextmanager
-from pathlib import Path
 
 import cv2
 import numpy as np
