@@ -184,6 +184,17 @@ def _wrap_forward(rasterizer_class: Any, profiler: Profiler) -> None:
     _replace(rasterizer_class, "forward", forward)
 
 
+# Stage 1's timed functions (attribute, section), wherever a stage-1 module binds them
+STAGE1_SECTIONS = (
+    ("dis_flow", "optical flow (DIS)"), ("_flow_solve", "flow solve (se(3))"), ("add_joint", "joint solve (se(3))"),
+    ("sample_pair", "flow samples"), ("joint_normals", "depth normals"),
+    ("depth_cloud", "point clouds (Open3D; import on first use)"), ("prepare_icp", "ICP"), ("align", "ICP"),
+    ("rgbd_odometry", "RGB-D odometry (Open3D)"), ("frame_view", "verification"), ("verify", "verification"),
+    ("flow_disagreement", "verification"), ("_information", "pose graph: information matrices"),
+    ("optimise", "pose graph: optimisation"), ("fuse_points", "fused point cloud"),
+)
+
+
 def install(profiler: Profiler) -> None:
     """Wrap the stages' work functions with ``profiler``'s timers (for the rest of the process)."""
     from . import deblur_model, density, flow, pipeline, refine_model
@@ -215,20 +226,10 @@ def install(profiler: Profiler) -> None:
         (checkpoint, "save", "checkpoints (I/O)"),
         (deblur, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
         (refine, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
-        (flow, "dis_flow", "optical flow (DIS)"), (pose_pair, "dis_flow", "optical flow (DIS)"),
-        (pose_pair, "_flow_solve", "flow solve (se(3))"), (pose_pair, "add_joint", "joint solve (se(3))"),
-        (pose_edges, "add_joint", "joint solve (se(3))"),
-        (pose_pair, "sample_pair", "flow samples"), (pose_edges, "sample_pair", "flow samples"),
-        (pose_pair, "joint_normals", "depth normals"), (pose_frames, "joint_normals", "depth normals"),
-        *[(module, "depth_cloud", "point clouds (Open3D; import on first use)")
-          for module in (pose, pose_pair, pose_frames, pose_edges)],
-        (pose_pair, "prepare_icp", "ICP"), (pose_pair, "align", "ICP"), (pose_edges, "align", "ICP"),
-        *[(module, "rgbd_odometry", "RGB-D odometry (Open3D)") for module in (pose_pair, pose_edges)],
-        (pose_pair, "frame_view", "verification"), (pose_frames, "frame_view", "verification"),
-        (pose_pair, "verify", "verification"), (pose_pair, "flow_disagreement", "verification"),
-        (pose_edges, "_information", "pose graph: information matrices"),
-        (pose_edges, "optimise", "pose graph: optimisation"),
-        (pose, "fuse_points", "fused point cloud"),
+        (flow, "dis_flow", "optical flow (DIS)"),
+        # stage 1's modules import some of these from each other: each module's own binding is timed
+        *[(module, attribute, name) for module in (pose, pose_pair, pose_frames, pose_edges)
+          for attribute, name in STAGE1_SECTIONS if hasattr(module, attribute)],
         # frame reads in every stage, counted once each (not their callers, such as stage 3's _load_frames)
         (sequence.Sequence, "color", "input frames (I/O)"), (sequence.Sequence, "depth", "input frames (I/O)"),
     ]:

@@ -129,11 +129,12 @@ def test_out_that_is_a_file_is_a_one_line_error(tmp_path, own_layout):
 def test_disk_full_or_read_only_output_is_a_one_line_error(tmp_path, own_layout, monkeypatch, code, hint):
     import taichi_gs.io.atomic as atomic
 
-    def failing(path, text):
-        raise OSError(code, os.strerror(code), str(path))
+    def failing(*args, dir=None, **kwargs):
+        raise OSError(code, os.strerror(code), str(dir))
 
-    monkeypatch.setattr(atomic, "write_text", failing)
-    monkeypatch.setattr("taichi_gs.pipeline.write_text", failing)
+    # every atomic write starts with a temporary file: failing there reaches each writer however it imported
+    # write_text (a module first imported during the run would keep a patched name after the test)
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", failing)
     result = CliRunner().invoke(app, ["--arch", "cpu", "pose", str(own_layout), "--out", str(tmp_path / "run")])
     assert result.exit_code == 2
     assert hint in one_line_error(result)

@@ -10,11 +10,12 @@ import numpy as np
 
 from ..geometry import invert
 from ..icp import align, depth_cloud, open3d, rgbd_odometry
+from ..io.jsonout import finite_or_null
 from ..pose_graph import Edge, optimise, rechoose
 from .pose_config import PoseConfig
 from .pose_frames import FrameCache
-from .pose_pair import (FROM_CONSTANT_VELOCITY, FROM_JOINT, Candidate, RelativePose, add_joint, choose,
-                        finite_or_none, icp_levels, measured_flow, sample_pair, seeded_flows)
+from .pose_pair import (FROM_CONSTANT_VELOCITY, FROM_JOINT, Candidate, RelativePose, add_joint, choose, icp_levels,
+                        measured_flow, sample_pair, seeded_flows)
 
 
 def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray, config: PoseConfig,
@@ -173,4 +174,4 @@ def _information(frames: FrameCache, i: int, j: int, T: np.ndarray, config: Pose
 def edge_record(edge: Edge) -> dict:
     """An edge as pairs.json lists it (after the graph: its weight and whether it was pruned)."""
     return {"source": edge.source, "target": edge.target, "kind": edge.kind, "estimate": edge.estimate,
-            "score": finite_or_none(edge.score), "weak": edge.weak, "weight": round(edge.weight, 5), "pruned": edge.pruned}
+            "score": finite_or_null(edge.score), "weak": edge.weak, "weight": round(edge.weight, 5), "pruned": edge.pruned}

@@ -17,6 +17,7 @@ import numpy as np
 from ..flow import dis_flow, finite_flow, forward_backward_mask, rigid_flow, to_gray_u8
 from ..geometry import backproject, invert, se3_log
 from ..icp import ICPLevels, align, depth_cloud, prepare_icp, rgbd_odometry
+from ..io.jsonout import finite_or_null
 from ..pose_verify import FlowCheck, FrameView, Verification, depth_normals, flow_disagreement, frame_view, verify
 from .pose_config import PoseConfig
 from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
@@ -61,10 +62,10 @@ class RelativePose:
             "transform": self.transform.tolist(),
             "estimate": self.estimate, "weak": self.weak, "flow_seed": self.flow_seed, "reason": self.reason,
             "flow_transform": None if self.flow_transform is None else self.flow_transform.tolist(),
-            "flow_residual_px": finite_or_none(self.flow_residual_px), "points": self.points,
-            "iterations": list(self.iterations), "icp_fitness": finite_or_none(self.icp_fitness),
-            "icp_inlier_rmse_m": finite_or_none(self.icp_inlier_rmse_m), "seconds": round(self.seconds, 4),
-            "score": finite_or_none(self.score), "overlap": finite_or_none(self.overlap), "candidates": self.candidates,
+            "flow_residual_px": finite_or_null(self.flow_residual_px), "points": self.points,
+            "iterations": list(self.iterations), "icp_fitness": finite_or_null(self.icp_fitness),
+            "icp_inlier_rmse_m": finite_or_null(self.icp_inlier_rmse_m), "seconds": round(self.seconds, 4),
+            "score": finite_or_null(self.score), "overlap": finite_or_null(self.overlap), "candidates": self.candidates,
         }
 
     @classmethod
@@ -477,7 +478,3 @@ def fallback_pose(prior: np.ndarray, reason: str, start: float) -> RelativePose:
     return RelativePose(np.array(prior, dtype=np.float64), FROM_CONSTANT_VELOCITY, weak=True, reason=reason,
                         seconds=time.perf_counter() - start)
 
-
-def finite_or_none(x: float) -> float | None:
-    """``x`` as a float, or None (JSON null) when it is not finite."""
-    return float(x) if np.isfinite(x) else None
