@@ -215,7 +215,8 @@ def eval_(
     gt_traj: Annotated[Optional[Path], typer.Option(help="Reference TUM trajectory.")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
-    """Evaluate a run folder (writes metrics.json) or a pair of TUM trajectories (--traj, --gt-traj)."""
+    """Evaluate a run folder (writes metrics.json and report/; without ground-truth poses or sharp frames, the
+    figures that need none, naming the rest) or a pair of TUM trajectories (--traj, --gt-traj)."""
     from .evaluate import match_by_time
     from .io import jsonout
     from .io.trajectory import read_tum
@@ -359,13 +360,20 @@ def import_(
     time_tolerance: TimeToleranceOption = None,
     format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
     first: FirstOption = 0, count: CountOption = 0,
+    average: Annotated[int, typer.Option("--average", min=1, help=(
+        "Average each W consecutive frames (W odd) in linear light into one long exposure: real motion blur "
+        "whose sharp reference (sharp/), depth, time and pose are the centre frame's; --count counts the "
+        "averaged frames; writes blur.json (each frame's measured streak)."))] = 1,
 ) -> None:
     """Convert a sequence to taichi-gs's own layout (frames.txt, rgb/, depth/, intrinsics.json, groundtruth.txt)."""
+    from .io.average import AveragedSequence
     from .io.convert import import_sequence
 
     _check_output_folder(folder, out)
     sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
-                           trust_depth_scale, first, count)
+                           trust_depth_scale, first, count * average)
+    if average > 1:
+        sequence = AveragedSequence(sequence, average)
     with progress_bar("import", len(sequence)) as update:
         import_sequence(sequence, out, progress=lambda done, total: update(done, total))
     console.print(f"wrote {len(sequence)} frames ({sequence.source['format']}) to {out}", highlight=False)

@@ -4,7 +4,8 @@ Writes ``frames.txt``, ``rgb/NAME.png`` (8-bit), ``depth/NAME.png`` (uint16 at t
 scale), ``intrinsics.json`` (with the camera's rolling-shutter ``readout_ms`` where the reading gives or
 names one, e.g. ``--camera fr1``), and when the input has them ``groundtruth.txt``, ``exposure.txt``,
 ``sharp/`` and ``sourced.png`` (the pixels that came from the camera, when some did not: an undistorted
-frame's border), each frame as the reader gives it (resampled, undistorted, masked, subsampled, scaled).
+frame's border), each frame as the reader gives it (resampled, undistorted, masked, subsampled, scaled);
+a sequence averaged into long exposures (``io.average``) also gets ``blur.json``.
 Everything goes to a temporary folder beside OUT, renamed onto OUT at the end; the input is only read.
 """
 
@@ -18,7 +19,9 @@ import numpy as np
 from ..errors import InputError
 from ..rolling_shutter import camera_readout_ms
 from .atomic import atomic_folder, write_text
+from .average import AveragedSequence, blur_record
 from .images import encode_depth, to_uint8, write_png
+from .jsonout import write_json
 from .sequence import Sequence
 from .trajectory import format_tum
 
@@ -65,3 +68,5 @@ def _write(sequence: Sequence, dest: Path, progress: Callable[[int, int], None] 
         end = format_tum(sequence.timestamps, sequence.exposure_poses[:, 1]).splitlines()
         rows = [f"{a} {b.split(maxsplit=1)[1]}" for a, b in zip(start, end)]
         write_text(dest / "exposure.txt", "\n".join(rows) + "\n")
+    if isinstance(sequence, AveragedSequence):
+        write_json(dest / "blur.json", blur_record(sequence))
