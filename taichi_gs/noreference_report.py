@@ -153,10 +153,11 @@ def no_reference_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | 
 def _streak_lengths(learned: Path, sequence: Sequence, mids: np.ndarray) -> dict[str, list[float]]:
     """Per frame mean streak length (pixels) over stage 3's exposure (``exposure_px``, from ``learned``, its
     exposure.txt, seen from the stage-3 mid-exposure poses ``mids``) and over the sequence's own
-    (``true_exposure_px``, from its ground-truth poses, where it has exposures), through the sensor depth."""
+    (``true_exposure_px``, from its ground-truth poses, where it has exposures and those poses), through the sensor
+    depth."""
     exposures = {"exposure_px": (read_exposure(learned, sequence.timestamps), mids),
                  "true_exposure_px": (sequence.exposure_poses, sequence.gt_poses)}
-    exposures = {key: pair for key, pair in exposures.items() if pair[0] is not None}
+    exposures = {key: pair for key, pair in exposures.items() if pair[0] is not None and pair[1] is not None}
     lengths: dict[str, list[float]] = {key: [] for key in exposures}
     K = sequence.K()
     for i in range(len(sequence) if exposures else 0):

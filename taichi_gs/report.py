@@ -32,42 +32,33 @@ IMAGE_NULL_REASONS = {
 
 
 def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
-    """Trajectory errors of every finished stage against ground truth; writes RUN_DIR/metrics.json."""
+    """Every figure of a run's finished stages that its sequence can score: trajectory errors against ground-truth
+    poses, stage 3's images against sharp frames, the no-reference figures, time and memory per stage; what the
+    sequence cannot score is named with its reason in ``not_scored``. Writes RUN_DIR/metrics.json and
+    RUN_DIR/report/."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise InputError(run_dir, "run folder not found", "give the --out folder of a taichi-gs run")
     sequence = open_run_sequence(run_dir, gt)
-    if sequence.gt_poses is None:
-        raise InputError(sequence.root, "sequence has no groundtruth.txt", "evaluate against a sequence with ground truth")
-    trajectories: dict[str, Any] = {}
-    aligned: dict[str, np.ndarray] = {"ground truth": sequence.gt_poses}
-    position_errors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for stage in STAGES:
-        path = run_dir / stage / "trajectory.txt"
-        if not path.is_file():
-            continue
-        t_est, est = read_tum(path)
-        i, j = match_by_time(t_est, sequence.timestamps)
-        gt = sequence.gt_poses[j]
-        finite = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
-        dropped = _dropped_frames(len(t_est), len(i), [sequence.names[k] for k in j[~finite]])
-        trajectories[stage] = trajectory_record(est[i], gt, dropped)
-        if finite.sum() >= 3:
-            moved = align_trajectory(est[i][finite], gt[finite])
-            aligned[stage] = moved
-            position_errors[stage] = (j[finite], 1000 * np.linalg.norm(moved[:, :3, 3] - gt[finite][:, :3, 3], axis=1))
-    if not trajectories:
+    estimates = {stage: read_tum(run_dir / stage / "trajectory.txt") for stage in STAGES
+                 if (run_dir / stage / "trajectory.txt").is_file()}
+    if not estimates:
         raise InputError(run_dir, "no stage output (pose/, refine/, deblur/) with a trajectory.txt", "run 'taichi-gs reconstruct' first")
-    if position_errors:
-        trajectory_plot(run_dir / "report" / "trajectory_top.png", aligned, "trajectories, aligned to ground truth (top view)")
-        line_plot(run_dir / "report" / "position_error.png", position_errors, "position error after alignment",
-                  "frame", "error (mm)")
+    if sequence.gt_poses is None:
+        trajectories: dict[str, Any] = {}
+        trajectory_plot(run_dir / "report" / "trajectory_top.png",
+                        {stage: est for stage, (_, est) in estimates.items()},
+                        "estimated trajectories (top view; no ground truth: not aligned)")
+    else:
+        trajectories = scored_trajectories(run_dir, sequence, estimates)
     stages = {stage: {k: record.get(k) for k in ("seconds", "peak_rss_mb", "arch", "summary", "warnings")}
               for stage, record in iter_stage_records(run_dir)}
+    images = image_metrics(run_dir, sequence)
     metrics = {
         "trajectory": trajectories,
-        "images": image_metrics(run_dir, sequence),
+        "images": images,
         "no_reference": no_reference_metrics(run_dir, sequence),
+        "not_scored": not_scored(sequence, stage_3_ran=images is not None),
         "stages": stages,
         "arch": next((s["arch"] for s in stages.values() if s.get("arch") not in (None, "none")), "none"),
         "versions": _versions(),
@@ -77,6 +68,49 @@ def evaluate_run(run_dir: Path, gt: Path | None = None) -> dict[str, Any]:
     metrics = finite_or_null(metrics, IMAGE_NULL_REASONS)
     write_json(run_dir / "metrics.json", metrics)
     return metrics
+
+
+def scored_trajectories(run_dir: Path, sequence: Sequence,
+                        estimates: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+    """Each stage's trajectory record against the sequence's ground truth (matched by timestamp); writes
+    RUN_DIR/report/trajectory_top.png and position_error.png (after alignment) where a stage aligns."""
+    trajectories: dict[str, Any] = {}
+    aligned: dict[str, np.ndarray] = {"ground truth": sequence.gt_poses}
+    position_errors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for stage, (t_est, est) in estimates.items():
+        i, j = match_by_time(t_est, sequence.timestamps)
+        gt = sequence.gt_poses[j]
+        finite = np.all(np.isfinite(gt.reshape(len(gt), -1)), axis=1)
+        dropped = _dropped_frames(len(t_est), len(i), [sequence.names[k] for k in j[~finite]])
+        trajectories[stage] = trajectory_record(est[i], gt, dropped)
+        if finite.sum() >= 3:
+            moved = align_trajectory(est[i][finite], gt[finite])
+            aligned[stage] = moved
+            position_errors[stage] = (j[finite], 1000 * np.linalg.norm(moved[:, :3, 3] - gt[finite][:, :3, 3], axis=1))
+    if position_errors:
+        trajectory_plot(run_dir / "report" / "trajectory_top.png", aligned, "trajectories, aligned to ground truth (top view)")
+        line_plot(run_dir / "report" / "position_error.png", position_errors, "position error after alignment",
+                  "frame", "error (mm)")
+    return trajectories
+
+
+def not_scored(sequence: Sequence, stage_3_ran: bool) -> list[dict[str, str]]:
+    """The figures the run's sequence has no reference for (or that stage 3 has not made yet), each with its reason."""
+    missing = []
+    if sequence.gt_poses is None:
+        missing.append({"what": "trajectory errors (ATE, RPE, rotation drift and scale), position-error plot",
+                        "reason": "the sequence has no ground-truth poses "
+                                  "(groundtruth.txt or its layout's pose files)"})
+    if not stage_3_ran:
+        missing.append({"what": "images and no-reference figures", "reason": "stage 3 (deblur) has not run"})
+        return missing
+    if sequence.sharp_paths is None:
+        missing.append({"what": "images: PSNR/SSIM of the renders and of the blurred input against sharp frames",
+                        "reason": "the sequence has no sharp/ folder"})
+    if sequence.exposure_poses is not None and sequence.gt_poses is None:
+        missing.append({"what": "no_reference true_exposure_px (the blur of the sequence's exposure.txt)",
+                        "reason": "its exposures are seen from the ground-truth poses, which the sequence lacks"})
+    return missing
 
 
 def trajectory_record(est: np.ndarray, ref: np.ndarray, dropped: list[dict[str, Any]] | None = None) -> dict[str, Any]:
@@ -115,13 +149,13 @@ def _number(value: Any, scale: float = 1.0, digits: int = 2) -> str:
 
 
 def format_metrics(metrics: dict[str, Any]) -> str:
-    """metrics.json as aligned plain-text tables: trajectory errors per stage, image scores per
-    split (with the blurred input's as the floor), the no-reference means of real captures, time and
-    memory per stage, warnings."""
+    """metrics.json as aligned plain-text tables: trajectory errors per stage (where there is ground truth), image
+    scores per split (with the blurred input's as the floor), the no-reference means of real captures, time and
+    memory per stage, what was not scored and why, warnings."""
 
     lines = ["trajectory (after rigid alignment)",
              f"  {'stage':8s} {'ATE mm':>9s} {'RPE mm':>9s} {'RPE deg':>9s} {'drift deg':>9s} {'rot scale':>9s} "
-             f"{'frames':>7s}  dropped"]
+             f"{'frames':>7s}  dropped"] if metrics["trajectory"] else []
     for stage, t in metrics["trajectory"].items():
         dropped = sum(d["count"] for d in t.get("dropped_frames", []))
         lines.append(f"  {stage:8s} {_number(t['ate_m'], 1000):>9s} {_number(t['rpe_trans_m'], 1000):>9s} "
@@ -138,9 +172,11 @@ def format_metrics(metrics: dict[str, Any]) -> str:
         lines += ["", f"stages (arch {metrics.get('arch', 'none')})", f"  {'stage':8s} {'seconds':>9s} {'peak MB':>9s}"]
         for stage, s in metrics["stages"].items():
             lines.append(f"  {stage:8s} {_number(s.get('seconds'), 1, 1):>9s} {_number(s.get('peak_rss_mb'), 1, 0):>9s}")
+    if metrics.get("not_scored"):
+        lines += ["", "not scored"] + [f"  {item['what']}: {item['reason']}" for item in metrics["not_scored"]]
     for warning in metrics.get("warnings", []):
         lines.append(f"warning: {warning}")
-    return "\n".join(lines)
+    return "\n".join(lines).lstrip("\n")
 
 
 def _no_reference_lines(figures: dict[str, Any] | None) -> list[str]:
@@ -196,7 +232,7 @@ def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
     per split (test views are held out of training); None before stage 3 has run.
 
     LPIPS needs network weights that cannot be fetched here, so it is reported as unavailable.
-    Writes RUN_DIR/report/test_views.png (input | deblurred | ground truth | depth)."""
+    Writes RUN_DIR/report/test_views.png (input | deblurred | sharp ground truth, where there is one | depth)."""
     deblur = run_dir / "deblur"
     split_path = deblur / "split.json"
     if not split_path.is_file():
@@ -213,25 +249,27 @@ def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
             render = read_color(deblur / "renders" / "sharp" / f"{stem}.png")
             depth = read_depth(deblur / "renders" / "depth" / f"{stem}.png", sequence.intrinsics.depth_scale)
             scores.setdefault("inverse_depth_rmse", []).append(inverse_depth_rmse(depth, sequence.depth(i)))
-            if has_sharp:
-                sharp, blurred = sequence.sharp(i), sequence.color(i)
+            in_grid = group == "test" and len(grid_rows) < GRID_VIEWS
+            blurred = sequence.color(i) if has_sharp or in_grid else None
+            sharps = [sequence.sharp(i)] if has_sharp else []
+            for sharp in sharps:
                 for name, value in (("psnr_db", psnr(render, sharp)), ("ssim", ssim(render, sharp)),
                                     ("blurred_input_psnr_db", psnr(blurred, sharp)),
                                     ("blurred_input_ssim", ssim(blurred, sharp))):
                     scores.setdefault(name, []).append(value)
-                if group == "test" and len(grid_rows) < GRID_VIEWS:
-                    grid_rows.append([blurred, render, sharp, depth])
-                    grid_titles.append(stem)
+            if in_grid:
+                grid_rows.append([blurred, render, *sharps, depth])
+                grid_titles.append(stem)
         if scores:
             result[group] = {"views": len(split.get(group, [])), **{k: float(np.mean(v)) for k, v in scores.items()}}
     if grid_rows:
-        depths = np.concatenate([row[3][row[3] > 0] for row in grid_rows])
+        depths = np.concatenate([row[-1][row[-1] > 0] for row in grid_rows])
         lo, hi = np.percentile(depths, [2, 98]) if depths.size else (0.0, 1.0)
         for row in grid_rows:
-            row[3] = colour_map(row[3], lo, hi)
+            row[-1] = colour_map(row[-1], lo, hi)
         width = grid_rows[0][0].shape[1]
         scale = colour_scale(width * max(1, -(-GRID_MIN_WIDTH // width)), lo, hi, "rendered depth (m); black: none")
         image_grid(run_dir / "report" / "test_views.png", grid_rows,
-                   ["blurred input", "deblurred (ours)", "sharp ground truth", "rendered depth"], grid_titles,
-                   min_width=GRID_MIN_WIDTH, footer=scale)
+                   ["blurred input", "deblurred (ours)", *(["sharp ground truth"] if has_sharp else []),
+                    "rendered depth"], grid_titles, min_width=GRID_MIN_WIDTH, footer=scale)
     return result

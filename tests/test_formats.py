@@ -17,7 +17,7 @@ from taichi_gs.cli import app
 from taichi_gs.errors import InputError
 from taichi_gs.io.convert import import_sequence
 from taichi_gs.io.formats import detect_format
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.sequence import IntrinsicsOverride, load_sequence
 from taichi_gs.io.transforms import resize_depth
 from taichi_gs.pipeline import open_run_sequence, write_run_info
 
@@ -243,6 +243,61 @@ def test_tum_frames_of_another_size_than_the_calibration_are_refused(tmp_path):
     cv2.imwrite(str(seq.rgb_paths[0]), small)
     with pytest.raises(InputError, match="320x240.*640x480"):
         seq.color(0)
+
+
+def _halve(paths: list[Path]) -> None:
+    """Frames resized in place to half their width and height (depth by nearest neighbour)."""
+    for path in paths:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(path), cv2.resize(image, (image.shape[1] // 2, image.shape[0] // 2),
+                                          interpolation=cv2.INTER_NEAREST))
+
+
+def test_a_tum_camera_is_refused_on_frames_of_another_size(tmp_path):
+    """The fr1 calibration (folder name) on 320x240 frames would be read as their camera: an error naming a frame
+    and the fix; the flags read them at any size, and --scale still shrinks the full-size frames."""
+    folder, _ = _write("tum", tmp_path)
+    assert load_sequence(folder, scale=0.5).intrinsics.width == 320
+    seq = load_sequence(folder)
+    _halve(seq.rgb_paths + seq.depth_paths)
+    with pytest.raises(InputError, match="320x240, but the fr1 camera is published for 640x480") as error:
+        load_sequence(folder)
+    assert error.value.path == seq.rgb_paths[0] and "--fx --fy --cx --cy" in error.value.fix
+    with pytest.raises(InputError, match="fr3 camera"):
+        load_sequence(folder, camera="fr3")
+    line = _cli_error(["import", str(folder), "--out", str(tmp_path / "copy")])
+    assert "published for 640x480" in line and "intrinsics.json" in line
+    flags = IntrinsicsOverride(fx=258.65, fy=258.25, cx=159.05, cy=127.4)
+    assert load_sequence(folder, flags).intrinsics.fx == 258.65
+    assert load_sequence(folder, flags, camera="fr1").transform is not None  # the flags' camera, fr1's distortion
+
+
+def test_the_7scenes_camera_is_refused_on_frames_of_another_size(tmp_path):
+    """seq-01/ of 320x240 frames without camera-intrinsics.txt: the published 640x480 camera would be read as theirs
+    (colour, and depth's when registered). An error naming a frame and the fixes; camera-intrinsics.txt, or the flags
+    read unregistered or with intrinsics.json's depth_camera, read them at any size; --scale still works."""
+    write_7scenes(tmp_path / "scene", seq=True)
+    assert load_sequence(tmp_path / "scene", scale=0.5).intrinsics.width == 320
+    frames = tmp_path / "scene" / "seq-01"
+    _halve(sorted(frames.glob("*.png")))
+    with pytest.raises(InputError, match="320x240, but the 7-Scenes camera .* is published for 640x480") as error:
+        load_sequence(tmp_path / "scene")
+    assert error.value.path == frames / "frame-000000.color.png" and "camera-intrinsics.txt" in error.value.fix
+    flags = IntrinsicsOverride(fx=263.25, fy=263.25, cx=160, cy=120)
+    with pytest.raises(InputError, match="published for 640x480") as error:  # registering: the depth camera's too
+        load_sequence(tmp_path / "scene", flags)
+    assert "--camera shipped" in error.value.fix and "depth_camera" in error.value.fix
+    assert load_sequence(tmp_path / "scene", flags, camera="shipped").intrinsics.fx == 263.25
+    line = _cli_error(["import", str(tmp_path / "scene"), "--out", str(tmp_path / "copy")])
+    assert "published for 640x480" in line and "camera-intrinsics.txt" in line
+    (tmp_path / "scene" / "intrinsics.json").write_text(json.dumps(
+        {"fx": 263.25, "fy": 263.25, "cx": 160, "cy": 120,
+         "depth_camera": {"fx": 292.5, "fy": 292.5, "cx": 160, "cy": 120, "colour_from_depth": [-0.025, 0, 0]}}))
+    assert load_sequence(tmp_path / "scene").intrinsics.fx == 263.25
+    (tmp_path / "scene" / "intrinsics.json").unlink()
+    (frames / "camera-intrinsics.txt").write_text("292.5 0 160\n0 292.5 120\n0 0 1\n")
+    seq = load_sequence(tmp_path / "scene")
+    assert (seq.intrinsics.width, seq.intrinsics.fx) == (320, pytest.approx(263.25))
 
 
 def test_tum_needs_a_camera(tmp_path):

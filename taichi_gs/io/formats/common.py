@@ -34,6 +34,15 @@ def intrinsics_with_defaults(root: Path, override: IntrinsicsOverride, first_rgb
     return _resolve_intrinsics(root, IntrinsicsOverride(**{**fallback, **override.values()}), first_rgb)
 
 
+def check_published_size(first_rgb: Path, intrinsics: Intrinsics, camera: str, size: tuple[int, int], fix: str) -> None:
+    """Refuse frames of another size than ``size`` (width, height), the one the published ``camera`` is for: its
+    numbers would be read as this size's camera."""
+    width, height = intrinsics.width, intrinsics.height
+    if (width, height) != size:
+        raise InputError(first_rgb, f"frames are {width}x{height}, but {camera} is published for {size[0]}x{size[1]} "
+                         "frames", fix)
+
+
 def json_keys(path: Path) -> set[str]:
     """The keys an intrinsics.json sets (empty if absent or unreadable: the full read reports that)."""
     if not path.is_file():

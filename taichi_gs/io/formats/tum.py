@@ -4,6 +4,8 @@ The camera comes from ``--camera fr1|fr2|fr3``, else from intrinsics.json or the
 flags (then no undistortion), else from the folder name (``rgbd_dataset_freiburg1_...``). A built-in
 camera's lens distortion is removed as frames are read: colour bilinearly, depth by nearest
 neighbour (TUM's depth is registered to the colour camera). Depth PNGs hold 5000 units per metre.
+A built-in camera's numbers are for 640x480 frames: frames of another size are refused unless the
+flags give all four.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 from ...errors import InputError
 from ..sequence import IntrinsicsOverride, Sequence, _open_tum_layout
 from ..transforms import Undistort, then
-from .common import ReadOptions, json_keys
+from .common import ReadOptions, check_published_size, json_keys
 
 NAME = "tum"
 # [ours] Seconds by which a Freiburg 1 depth frame's stamp trails the moment its depth shows, measured on fr1_rpy:
@@ -32,6 +34,7 @@ CAMERAS: dict[str, dict[str, object]] = {
     "fr2": {"fx": 520.9, "fy": 521.0, "cx": 325.1, "cy": 249.7, "distortion": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)},
     "fr3": {"fx": 535.4, "fy": 539.2, "cx": 320.1, "cy": 247.6, "distortion": (0.0, 0.0, 0.0, 0.0, 0.0)},
 }
+PUBLISHED_SIZE = (640, 480)  # the frames the Freiburg calibrations are for
 PINHOLE = ("fx", "fy", "cx", "cy")
 
 
@@ -64,6 +67,9 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     if latency is None:
         latency = float(CAMERAS[camera].get("depth_latency_s", 0.0)) if camera is not None else 0.0
     sequence = _open_tum_layout(root, override, options.max_time_difference, latency)
+    if camera is not None and not all(k in flags for k in PINHOLE):
+        check_published_size(sequence.rgb_paths[0], sequence.intrinsics, f"the {camera} camera", PUBLISHED_SIZE,
+                             "give this size's camera in intrinsics.json (without --camera) or with --fx --fy --cx --cy")
     if camera is not None:
         distortion = np.array(CAMERAS[camera]["distortion"], dtype=float)
         intr = sequence.intrinsics
