@@ -270,7 +270,10 @@ class Stage(str, Enum):
     deblur = "deblur"
 
 
-PresetOption = Annotated[Preset, typer.Option(help="fast: CPU-sized schedules; paper: the method's schedules.")]
+PresetOption = Annotated[Preset, typer.Option(help=(
+    "fast (default): ours, CPU-sized schedules with every addition of ours on (verified pair candidates, RGB-D "
+    "odometry, pose graph, rolling shutter, warped views, adaptive k, colour transforms, ...); paper: the paper's "
+    "method exactly, its schedules and none of our additions (DIS in place of Unimatch)."))]
 
 
 FxOption = Annotated[Optional[float], typer.Option("--fx", help="Focal length x (px); wins over intrinsics.json.")]

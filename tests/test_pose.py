@@ -90,10 +90,10 @@ def test_pair_beyond_dis_range_is_recovered_with_prior_seeded_flow():
     motion = se3_exp(np.array([0.02, 0.0, 0.01, 0.0, np.radians(12.0), 0.0]))  # ~30 px at 160x120
     prior = se3_exp(np.array([0.0, 0.0, 0.0, 0.0, np.radians(10.0), 0.0]))  # constant-velocity guess, 2 deg off
     color_t, depth_t, color_t1, depth_t1, K = pair(motion)
-    unseeded = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K,
-                                      config=dataclasses.replace(METHOD_ONLY, seeded_retry=False), prior=prior)
+    unseeded = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=METHOD_ONLY, prior=prior)
     assert unseeded.weak and unseeded.flow_seed == "none"
-    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K, config=METHOD_ONLY, prior=prior)
+    result = estimate_relative_pose(color_t, depth_t, color_t1, depth_t1, K,
+                                    config=dataclasses.replace(METHOD_ONLY, seeded_retry=True), prior=prior)
     assert not result.weak and result.flow_seed == "constant-velocity" and result.estimate == "icp"
     assert result.reason.startswith("unseeded flow failed")
     assert np.linalg.norm(result.transform[:3, 3] - motion[:3, 3]) < 0.01  # 4.6 mm measured

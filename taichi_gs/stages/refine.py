@@ -123,7 +123,8 @@ class RefineConfig:
 FAST_TRAINING_PER_FRAME = 60  # iterations_per_frame of the fast preset's schedule when stage 2 trains (not by default)
 
 PRESETS = {
-    "paper": RefineConfig(),
+    # the method: every pose kept (no acceptance test), no coverage term, depth edges not masked
+    "paper": RefineConfig(accept_neighbours=0, lambda_coverage=0.0, edge_ratio=0.0),
     # [ours] CPU-sized: stage 2 hands stage 1's poses and fused cloud to stage 3 untrained. Its 60 N iterations (the
     # schedule below, with iterations_per_frame = FAST_TRAINING_PER_FRAME) took 30% of the sample's run, and the
     # refined poses never passed the acceptance test in the fast preset; stage 3 from the untrained cloud scored
