@@ -28,12 +28,3 @@ def test_task_ceiling_weights_parallel_tasks_by_their_time_and_serial_ones_at_on
              ("adam_step_c9_0_kernel_1_range_for", 1.0)]
     assert task_ceiling(tasks, CURVE) == pytest.approx((10 * 1.9 + 10 * 1.0 + 1 * 1.5) / 21)
 
-
-def test_a_taichi_cpu_launch_holds_the_gil_so_other_python_code_waits():
-    """What the bench measures for issue 17: host work cannot overlap a launch (Taichi 1.7.4 keeps the GIL)."""
-    from launch_cores import python_pace_during_launches
-
-    from taichi_gs.kernels import runtime
-
-    runtime.init("cpu")
-    assert python_pace_during_launches(0.3, reps=64) < 0.2
