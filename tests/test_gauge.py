@@ -147,9 +147,3 @@ def test_pinned_exposures_keep_every_mid_exposure_pose_at_stage_2s(tmp_path, pin
         assert moved.max() < 1e-6
     else:
         assert moved[result.train].max() > 1e-4 and moved[result.test].max() > 1e-4
-
-
-def test_the_fast_preset_keeps_stage_2s_frame_and_paper_does_not():
-    fast, paper = PRESETS["fast"], PRESETS["paper"]
-    assert fast.keep_frame and not paper.keep_frame
-    assert fast.mid_exposure_decay == 0.0 and paper.mid_exposure_decay == 0.0

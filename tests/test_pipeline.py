@@ -231,7 +231,6 @@ def test_every_stage_is_declared_once_with_both_presets():
         assert set(stage.presets) == {"fast", "paper"}
         assert all(type(config) is stage.config_type for config in stage.presets.values())
         assert stage.outputs and "trajectory.txt" in stage.outputs
-    assert declared("pose").presets["paper"].icp_max_points == 0  # the method's ICP on every point
     with pytest.raises(ValueError, match="unknown stage"):
         declared("sharpen")
 
