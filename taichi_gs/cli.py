@@ -520,6 +520,31 @@ def export(
 
 @app.command()
 @handles_errors
+def view(
+    out: Annotated[Path, typer.Argument(help="Run folder (any finished stage).")],
+    host: Annotated[str, typer.Option(help="Address to serve on (0.0.0.0: every interface).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(min=0, max=65535, help="Port to serve on (0: any free port).")] = 8080,
+) -> None:
+    """Look around a run in the browser: splats, cameras with their exposures, trajectory, a stage switch; a
+    camera click shows its blurred input beside the sharp render. Needs pip install 'taichi-gs[viewer]'."""
+    import time
+
+    from .viewer.app import serve
+
+    viewer = serve(out, host, port, state.arch)
+    console.print(f"viewer of {out} at {viewer.url} (Ctrl-C to stop)", highlight=False)
+    typer.echo(viewer.url)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.stop()
+
+
+@app.command()
+@handles_errors
 def deblur(
     out: Annotated[Path, typer.Argument(help="Run folder holding refine/ from stage 2; results go to OUT/deblur/.")],
     preset: PresetOption = Preset.fast,

@@ -27,7 +27,8 @@ def test_help_lists_every_command():
     result = runner.invoke(app, ["--help"])
     assert result.exit_code == 0
     registered = set(typer.main.get_command(app).commands)
-    assert registered == {"reconstruct", "pose", "refine", "deblur", "synth", "eval", "render", "export", "info", "import"}
+    assert registered == {"reconstruct", "pose", "refine", "deblur", "synth", "eval", "render", "export", "info", "import",
+                          "view"}
 
 
 @pytest.mark.parametrize("command", ["refine", "deblur", "render", "export"])

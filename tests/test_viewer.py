@@ -1,0 +1,176 @@
+"""`taichi-gs view`: the run folder read per stage, the viser scene built from it, bad input, and the page in a
+real headless Chromium (loads, the Gaussians the client received, a camera click, a screenshot that is not blank)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from taichi_gs import geometry as g
+from taichi_gs.cli import app
+from taichi_gs.errors import InputError
+from taichi_gs.io.images import to_uint8, write_png
+from taichi_gs.io.ply import write_point_cloud, write_splats
+from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.trajectory import write_tum
+from taichi_gs.pipeline import write_run_info
+from taichi_gs.splats import Splats, splats_from_points
+from taichi_gs.synth import SynthConfig, generate
+from taichi_gs.viewer.run_scene import gaussian_arrays, open_run
+
+runner = CliRunner()
+FRAMES = 4
+REFINE_GAUSSIANS = 900
+DEBLUR_GAUSSIANS = 1500
+# CI sets this: there a missing browser fails the browser test instead of skipping it.
+REQUIRE_BROWSER = "TAICHI_GS_REQUIRE_BROWSER"
+
+
+def _scene_points(sequence, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` world points of the frames' depth, coloured from their sharp images."""
+    points, colours = [], []
+    for i in range(len(sequence)):
+        depth = sequence.depth(i)
+        valid = depth > 0
+        camera = g.backproject(depth, sequence.K())[valid]
+        points.append(g.transform(sequence.gt_poses[i], camera))
+        colours.append(sequence.sharp(i)[valid])
+    points, colours = np.concatenate(points), np.concatenate(colours)
+    keep = np.random.default_rng(seed).choice(len(points), count, replace=False)
+    return points[keep], colours[keep]
+
+
+@pytest.fixture(scope="module")
+def run_folder(tmp_path_factory) -> Path:
+    """A run folder with every stage's outputs, made from a synthetic sequence's ground truth (no training): pose/
+    (trajectory, fused points), refine/ and deblur/ (trajectory, splats; deblur also exposure.txt and sharp
+    renders: the ground-truth sharp frames)."""
+    root = tmp_path_factory.mktemp("view")
+    seq_dir = generate(SynthConfig(width=64, height=48, frames=FRAMES, trajectory="handheld", blur="extreme", seed=3),
+                       root / "seq")
+    sequence = load_sequence(seq_dir)
+    run = root / "run"
+    write_run_info(run, sequence)
+    for stage in ("pose", "refine", "deblur"):
+        write_tum(run / stage / "trajectory.txt", sequence.timestamps, sequence.gt_poses)
+    write_point_cloud(run / "pose" / "points.ply", *_scene_points(sequence, 2000, 0))
+    write_splats(run / "refine" / "splats.ply", splats_from_points(*_scene_points(sequence, REFINE_GAUSSIANS, 1), 0.03))
+    write_splats(run / "deblur" / "splats.ply", splats_from_points(*_scene_points(sequence, DEBLUR_GAUSSIANS, 2), 0.03,
+                                                                   opacity=0.9))
+    shutil.copyfile(seq_dir / "exposure.txt", run / "deblur" / "exposure.txt")  # the true exposures, same layout
+    for i, name in enumerate(sequence.names):
+        write_png(run / "deblur" / "renders" / "sharp" / f"{name}.png", to_uint8(sequence.sharp(i)))
+    return run
+
+
+def _copy_without(run: Path, tmp_path: Path, *stages: str) -> Path:
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    for stage in stages:
+        shutil.rmtree(copy / stage)
+    return copy
+
+
+def test_run_is_read_per_stage(run_folder):
+    scene = open_run(run_folder)
+    assert scene.stages == ["pose", "refine", "deblur"]
+    deblur, refine, pose = scene.stage("deblur"), scene.stage("refine"), scene.stage("pose")
+    assert (deblur.gaussian_count, refine.gaussian_count, pose.gaussian_count) == (DEBLUR_GAUSSIANS, REFINE_GAUSSIANS, 0)
+    assert pose.splats is None and len(pose.points[0]) == 2000
+    assert deblur.exposures.shape == (FRAMES, 2, 4, 4) and refine.exposures is None and pose.exposures is None
+    np.testing.assert_allclose(deblur.exposures, scene.sequence.exposure_poses, atol=1e-6)
+    np.testing.assert_allclose(refine.poses, scene.sequence.gt_poses, atol=1e-6)
+    assert scene.stored_render(deblur, 1).shape == (48, 64, 3) and scene.stored_render(refine, 1) is None
+    assert scene.input_image(1).dtype == np.uint8 and scene.input_image(1).shape == (48, 64, 3)
+
+
+def test_only_stages_with_outputs_are_offered(run_folder, tmp_path):
+    assert open_run(_copy_without(run_folder, tmp_path, "refine", "deblur")).stages == ["pose"]
+
+
+def test_gaussian_arrays_are_the_covariance_colour_and_opacity():
+    angle = 0.7
+    rotation = g.so3_exp(np.array([0.0, 0.0, angle]))
+    splats = Splats(means=np.array([[1.0, 2.0, 3.0]], np.float32),
+                    quats=np.array([[np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]], np.float32) * 2.0,  # unnormalised
+                    log_scales=np.log(np.array([[0.1, 0.2, 0.05]], np.float32)),
+                    opacity_logits=np.array([0.0], np.float32), sh=np.full((1, 4, 3), 1.0, np.float32))
+    centres, covariances, colours, opacities = gaussian_arrays(splats)
+    expected = rotation @ np.diag([0.01, 0.04, 0.0025]) @ rotation.T
+    np.testing.assert_allclose(covariances[0], expected, atol=1e-7)
+    np.testing.assert_allclose(centres, [[1, 2, 3]])
+    np.testing.assert_allclose(colours, np.full((1, 3), 0.28209479177387814 + 0.5), atol=1e-6)
+    np.testing.assert_allclose(opacities, [[0.5]])
+
+
+def test_view_of_a_folder_that_is_no_run_fails_with_one_line(tmp_path):
+    pytest.importorskip("viser")
+    result = runner.invoke(app, ["view", str(tmp_path), "--port", "0"])
+    assert result.exit_code == 2, result.output
+    assert "run.json" in result.output and len(result.output.strip().splitlines()) == 1
+
+
+def test_view_of_a_run_without_stage_output_fails_with_one_line(run_folder, tmp_path):
+    pytest.importorskip("viser")
+    bare = _copy_without(run_folder, tmp_path, "pose", "refine", "deblur")
+    result = runner.invoke(app, ["view", str(bare), "--port", "0"])
+    assert result.exit_code == 2, result.output
+    assert "no stage output" in result.output and len(result.output.strip().splitlines()) == 1
+
+
+def test_view_without_the_extra_names_it(run_folder, monkeypatch):
+    monkeypatch.setitem(sys.modules, "viser", None)  # import viser raises ImportError
+    result = runner.invoke(app, ["view", str(run_folder)])
+    assert result.exit_code == 2, result.output
+    assert "pip install 'taichi-gs[viewer]'" in result.output
+
+
+def test_view_refuses_a_port_in_use(run_folder):
+    pytest.importorskip("viser")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = runner.invoke(app, ["view", str(run_folder), "--port", str(port)])
+    assert result.exit_code == 2, result.output
+    assert f"127.0.0.1:{port}" in result.output and "--port" in result.output
+
+
+@pytest.fixture
+def viewer(run_folder):
+    pytest.importorskip("viser")
+    from taichi_gs.viewer.app import RunViewer
+
+    viewer = RunViewer(open_run(run_folder), "127.0.0.1", 0)
+    yield viewer
+    viewer.stop()
+
+
+def test_the_scene_is_built_from_the_run(viewer):
+    assert viewer.stage_name == "deblur" and viewer.port > 0 and viewer.url == f"http://127.0.0.1:{viewer.port}"
+    assert len(viewer._frustums) == FRAMES
+    assert len(viewer._nodes) == 1 + 1 + FRAMES * 3  # splats, trajectory, a frustum and its exposure's two ends
+    assert f"Gaussians: {DEBLUR_GAUSSIANS}" in viewer.counts.content and "exposures" in viewer.counts.content
+    assert viewer.stage_menu.options == ("pose", "refine", "deblur")
+    assert not viewer.image.visible
+    viewer.show_camera(2)
+    assert viewer.image.visible and viewer.image.image.shape == (48, 128, 3)  # input | sharp render
+    assert "blurred input | sharp render (deblur)" in viewer.caption.content
+    assert viewer.camera_menu.value == viewer.scene.sequence.names[2]
+    assert tuple(viewer._frustums[2].color) != tuple(viewer._frustums[1].color)  # the chosen camera stands out
+
+    viewer.stage_menu.value = "pose"  # the stage switch: its handler replaces the scene
+    assert viewer.stage_name == "pose" and len(viewer._frustums) == FRAMES
+    assert len(viewer._nodes) == 1 + 1 + FRAMES and "points: 2000" in viewer.counts.content
+    assert viewer.image.image.shape == (48, 64, 3) and "has no splats" in viewer.caption.content  # input only
+
+    viewer.camera_menu.value = viewer.scene.sequence.names[0]  # the camera dropdown: the frustum click's handler
+    assert "**" + viewer.scene.sequence.names[0] + "**" in viewer.caption.content
