@@ -532,7 +532,7 @@ def view(
     from .viewer.app import serve
 
     viewer = serve(out, host, port, state.arch)
-    console.print(f"viewer of {out} at {viewer.url} (Ctrl-C to stop)", highlight=False)
+    console.print(f"viewer of {out} at {viewer.url} (Ctrl-C to stop)", highlight=False, soft_wrap=True)
     typer.echo(viewer.url)
     try:
         while True:

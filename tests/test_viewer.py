@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
+import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -174,3 +177,141 @@ def test_the_scene_is_built_from_the_run(viewer):
 
     viewer.camera_menu.value = viewer.scene.sequence.names[0]  # the camera dropdown: the frustum click's handler
     assert "**" + viewer.scene.sequence.names[0] + "**" in viewer.caption.content
+
+    viewer.stage_menu.value = "refine"  # no stored renders: the splats are rendered at the frame's pose
+    assert f"Gaussians: {REFINE_GAUSSIANS}" in viewer.counts.content and "exposures" not in viewer.counts.content
+    assert "blurred input | render (refine)" in viewer.caption.content and viewer.image.image.shape == (48, 128, 3)
+    render = viewer.image.image[:, 64:].astype(float)
+    assert render.std() > 5 and render.mean() > 10  # the splats, not an empty frame
+
+
+def test_view_prints_the_url_and_serves_on_the_port_given(run_folder):
+    pytest.importorskip("viser")
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    process = subprocess.Popen([sys.executable, "-m", "taichi_gs.cli", "view", str(run_folder), "--host", "127.0.0.1",
+                                "--port", str(port)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = process.stdout.readline().strip()
+        assert url == f"http://127.0.0.1:{port}", process.stderr.read() if not url else url
+        with urllib.request.urlopen(url, timeout=10) as page:
+            assert page.status == 200 and b"<html" in page.read().lower()
+    finally:
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=30)
+    assert process.returncode == 0, stderr
+    assert f"viewer of {run_folder} at {url}" in " ".join(stderr.split())
+
+
+def _chromium() -> str:
+    """The system's Chromium for Playwright, or a skip saying why (a failure where CI requires the browser)."""
+    why = None
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        why = "Playwright is not installed (pip install -e '.[test]')"
+    path = os.environ.get("TAICHI_GS_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    if why is None and path is None:
+        why = "no Chromium found (Debian: apt-get install chromium; or set TAICHI_GS_CHROMIUM)"
+    if why is not None:
+        if os.environ.get(REQUIRE_BROWSER):
+            pytest.fail(f"{REQUIRE_BROWSER} is set but the browser test cannot run: {why}")
+        pytest.skip(why)
+    return path
+
+
+CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
+                  "--disable-component-update", "--disable-sync", "--disable-dev-shm-usage"]
+
+
+def _gaussians_received(frames: list[bytes]) -> list[int]:
+    """The Gaussian count of every splat message in the websocket frames the page received (viser's wire format:
+    two little-endian sizes, zstd-compressed msgpack naming each binary buffer's length, then the buffers; a
+    Gaussian is 8 uint32)."""
+    import msgspec
+    import zstandard
+
+    counts = []
+    for frame in frames:
+        size, packed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+        body = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + packed],
+                                                                               max_output_size=size))
+        for message in body["messages"]:
+            if message.get("type") == "GaussianSplatsMessage":
+                counts.append(body["binaryBufferLengths"][message["props"]["buffer"]["__binary_index"]] // 32)
+    return counts
+
+
+def _wait_for(condition, timeout_s: float = 20.0) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.1)
+    return condition()
+
+
+def test_the_page_in_headless_chromium(viewer, tmp_path):
+    executable = _chromium()
+    from playwright.sync_api import sync_playwright
+
+    frames: list[bytes] = []
+    names = viewer.scene.sequence.names
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=executable, headless=True,
+                                             args=CHROMIUM_FLAGS)  # a fresh profile each launch
+        try:
+            page = browser.new_page(viewport={"width": 1000, "height": 700})
+            page.on("websocket", lambda ws: ws.on(
+                "framereceived", lambda payload: frames.append(payload) if isinstance(payload, bytes) else None))
+            page.goto(viewer.url)
+            page.get_by_text(f"Gaussians: {DEBLUR_GAUSSIANS}").wait_for(timeout=30_000)  # the page loaded the run
+            assert _wait_for(lambda: DEBLUR_GAUSSIANS in _gaussians_received(frames)), _gaussians_received(frames)
+            assert _wait_for(lambda: len(viewer.server.get_clients()) == 1)
+            time.sleep(2.0)  # software WebGL: let the splats sort and draw
+            canvas = max(page.locator("canvas").all(), key=lambda c: (c.bounding_box() or {"width": 0})["width"])
+            overview = canvas.screenshot(path=str(tmp_path / "overview.png"))
+
+            # A click on the last camera's frustum (the cameras move forwards): the browser's camera is put in front
+            # of it, looking back at its image plane, which lies ahead of every other frustum.
+            last = FRAMES - 1
+            pose = viewer.scene.stage("deblur").poses[last]
+            client = next(iter(viewer.server.get_clients().values()))
+            client.camera.position = pose[:3, 3] + 0.5 * pose[:3, 2]
+            client.camera.look_at = pose[:3, 3]
+            time.sleep(1.5)
+            box = canvas.bounding_box()
+            assert not viewer.image.visible
+            page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+            page.get_by_text("blurred input | sharp render (deblur)").wait_for(timeout=15_000)
+            assert viewer._shown == ("deblur", last)
+            assert page.locator("img").count() >= 1
+            page.screenshot(path=str(tmp_path / "clicked.png"))
+
+            # The camera dropdown: the same handler as a click.
+            camera_menu = page.get_by_role("combobox", name="camera")
+            assert camera_menu.input_value() == names[last]  # the click set the dropdown too
+            camera_menu.click()
+            page.get_by_role("option", name=names[1]).click()
+            assert _wait_for(lambda: viewer._shown == ("deblur", 1))
+            page.get_by_text(names[1]).first.wait_for(timeout=15_000)
+            page.screenshot(path=str(tmp_path / "chosen.png"))
+        finally:
+            browser.close()
+    if os.environ.get("TAICHI_GS_VIEWER_SHOTS"):  # to look at them
+        for name in ("overview.png", "clicked.png", "chosen.png"):
+            shutil.copyfile(tmp_path / name, Path(os.environ["TAICHI_GS_VIEWER_SHOTS"]) / name)
+    assert _drawn_share(overview) > 0.1
+
+
+def _drawn_share(png: bytes) -> float:
+    """The share of the canvas's middle (clear of the GUI panel, top right, and notices, top left) that differs
+    from its most common colour, the background."""
+    import imageio.v3 as iio
+
+    image = iio.imread(png)[..., :3].astype(int)
+    h, w = image.shape[:2]
+    middle = image[int(0.3 * h):int(0.9 * h), int(0.1 * w):int(0.6 * w)].reshape(-1, 3)
+    colours, counts = np.unique(middle, axis=0, return_counts=True)
+    return float(np.mean(np.abs(middle - colours[np.argmax(counts)]).sum(axis=1) > 30))

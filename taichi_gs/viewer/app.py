@@ -6,6 +6,8 @@ viser is the optional extra ``taichi-gs[viewer]``; this module imports it when a
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import socket
 import threading
@@ -50,6 +52,11 @@ def check_address(host: str, port: int) -> None:
                          "give another --port, or a --host of this machine (127.0.0.1: this machine only)") from None
 
 
+def _quiet() -> contextlib.AbstractContextManager:
+    """Keep viser's own banner and stop notice off stdout (the command prints the URL itself)."""
+    return contextlib.redirect_stdout(io.StringIO())
+
+
 class RunViewer:
     """A viser server showing one stage of a run at a time; a frustum click or the camera dropdown shows that
     frame's blurred input beside the stage's render (stage 3's stored sharp render, else one rendered now)."""
@@ -58,10 +65,12 @@ class RunViewer:
         viser = import_viser()
         check_address(host, port)
         self.scene, self.arch = scene, arch
-        self.server = viser.ViserServer(host=host, port=port, label="taichi-gs", verbose=False)
+        with _quiet():
+            self.server = viser.ViserServer(host=host, port=port, label="taichi-gs", verbose=False)
         if port and self.server.get_port() != port:  # taken between the check and the bind
-            self.server.stop()
+            self.stop()
             raise InputError(None, f"port {port} is in use", "give another --port")
+        self.server.gui.configure_theme(show_share_button=False)  # a share link would route the scene through viser's relay
         self.host, self.port = host, self.server.get_port()
         self._lock = threading.RLock()
         self._nodes: list[Any] = []
@@ -77,7 +86,8 @@ class RunViewer:
         return f"http://{f'[{host}]' if ':' in host else host}:{self.port}"
 
     def stop(self) -> None:
-        self.server.stop()
+        with _quiet():
+            self.server.stop()
 
     def _build_gui(self) -> None:
         gui, names = self.server.gui, self.scene.sequence.names
