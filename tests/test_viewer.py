@@ -211,9 +211,10 @@ def _chromium() -> str:
         import playwright.sync_api  # noqa: F401
     except ImportError:
         why = "Playwright is not installed (pip install -e '.[test]')"
-    path = os.environ.get("TAICHI_GS_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    given = os.environ.get("TAICHI_GS_CHROMIUM")
+    path = given if given and Path(given).is_file() else shutil.which("chromium") or shutil.which("chromium-browser")
     if why is None and path is None:
-        why = "no Chromium found (Debian: apt-get install chromium; or set TAICHI_GS_CHROMIUM)"
+        why = "no Chromium found (Debian: apt-get install chromium; or set TAICHI_GS_CHROMIUM to its path)"
     if why is not None:
         if os.environ.get(REQUIRE_BROWSER):
             pytest.fail(f"{REQUIRE_BROWSER} is set but the browser test cannot run: {why}")
@@ -278,9 +279,11 @@ def test_the_page_in_headless_chromium(viewer, tmp_path):
             last = FRAMES - 1
             pose = viewer.scene.stage("deblur").poses[last]
             client = next(iter(viewer.server.get_clients().values()))
-            client.camera.position = pose[:3, 3] + 0.5 * pose[:3, 2]
-            client.camera.look_at = pose[:3, 3]
-            time.sleep(1.5)
+            target = pose[:3, 3] + 0.5 * pose[:3, 2]
+            client.camera.position, client.camera.look_at = target, pose[:3, 3]
+            moved = time.time()
+            assert _wait_for(lambda: client.camera.update_timestamp > moved  # the page reports its camera back
+                             and np.allclose(client.camera.position, target, atol=1e-3))
             box = canvas.bounding_box()
             assert not viewer.image.visible
             page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
