@@ -124,6 +124,34 @@ def pose_ate_rpe(runs: list[Run], work: Path) -> str:
                  "sequence: ATE mm / RPE rot deg")
 
 
+def pose_two_references(runs: list[Run], work: Path) -> str:
+    """Stage 1 on real sequences scored against their own reference and against ``--reference`` (rows "NAME vs
+    STEM"): ATE mm / RPE rotation deg of the references against each other, of ours and of the best peer (the peer of
+    lowest ATE against that reference) against each."""
+    rows = pose_rows(runs)
+    own = [name for name in dict.fromkeys(r["sequence"] for r in rows) if " vs " not in name]
+
+    def figures(sequence: str, method: str) -> str:
+        row = next((r for r in rows if r["sequence"] == sequence and r["method"] == method), None)
+        return "-" if row is None else f"{row['ATE (mm)']} / {row['RPE rot (deg)']}"
+
+    def best_peer(sequence: str) -> str:
+        peers = [r for r in rows if r["sequence"] == sequence and r["method"] in PEERS]
+        if not peers:
+            return "-"
+        best = min(peers, key=lambda r: float(r["ATE (mm)"]))
+        return f"{best['ATE (mm)']} / {best['RPE rot (deg)']} ({best['method']})"
+
+    table = []
+    for name in own:
+        other = next((r["sequence"] for r in rows if r["sequence"].startswith(name + " vs ")), None)
+        table.append([name, figures(other, "the sequence's own reference") if other else "-",
+                      figures(name, "ours"), best_peer(name),
+                      figures(other, "ours") if other else "-", best_peer(other) if other else "-"])
+    return markdown(["sequence: ATE mm / RPE rot deg", "the references against each other", "ours vs its own",
+                     "best peer vs its own", "ours vs the other", "best peer vs the other"], table)
+
+
 def e2e(runs: list[Run], work: Path) -> str:
     """``bench/e2e.py``: time and held-out quality per sequence length, with the gain over the floor (the blurred
     input, or on a recording the nearer training frames warped into the view)."""
@@ -201,7 +229,7 @@ TABLES = {t.name: t for t in [
           (POSE + ("--frames", "60", "--scenes", "", "--real-every", "1,2,3", "--real-scale", "1.0",
                    "--real-camera", "registered", "--reference", "{TAICHI_GS_7SCENES_SFM}", "--out", "{work}",
                    "--methods", ",".join(("ours", *PEERS))),),
-          pose_ate, needs=("TAICHI_GS_7SCENES_SFM",)),
+          pose_two_references, needs=("TAICHI_GS_7SCENES_SFM",)),
     Table("stage1_tum", "stage 1 on three 60-frame stretches of TUM fr1_rpy (640x480) against motion capture",
           "about an hour on 2 cores",
           tuple(POSE + ("--sequence", "{TAICHI_GS_TUM}", "--camera", "fr1", "--first", first, "--frames", "60",
@@ -283,15 +311,19 @@ def run_table(table: Table, work: Path) -> str:
 
 
 def machine() -> str:
-    """The CPU model and the cores this process may use (and the GPU, where nvidia-smi names one)."""
+    """The CPU model (with its family and model numbers, which tell one EPYC generation from another), the cores this
+    process may use, the GPU where nvidia-smi names one, and the load average when the table started."""
     model = platform.processor() or platform.machine()
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        found = re.search(r"^model name\s*:\s*(.+)$", cpuinfo.read_text(), re.M)
-        model = found.group(1).strip() if found else model
+    cpuinfo = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else ""
+    fields = {key: re.search(rf"^{key}\s*:\s*(.+)$", cpuinfo, re.M) for key in ("model name", "cpu family", "model")}
+    if fields["model name"]:
+        model = fields["model name"].group(1).strip()
+        if fields["cpu family"] and fields["model"]:
+            model += f" (family {fields['cpu family'].group(1).strip()}, model {fields['model'].group(1).strip()})"
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     gpu = gpu_name()
-    return f"{model}, {cores} cores" + (f", {gpu}" if gpu else "")
+    load = f", load average {os.getloadavg()[0]:.1f} at the start" if hasattr(os, "getloadavg") else ""
+    return f"{model}, {cores} cores" + (f", {gpu}" if gpu else "") + load
 
 
 def stamp(table: Table, date: str, where: str) -> str:
@@ -332,7 +364,8 @@ def main() -> None:
         raise SystemExit(2)
     work = args.work or Path(tempfile.mkdtemp(prefix=f"results_{table.name}_"))
     work.mkdir(parents=True, exist_ok=True)
-    body = f"{stamp(table, datetime.date.today().isoformat(), machine())}\n\n{run_table(table, work)}"
+    where = machine()
+    body = f"{stamp(table, datetime.date.today().isoformat(), where)}\n\n{run_table(table, work)}"
     print(body)
     if args.write:
         try:

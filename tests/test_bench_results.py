@@ -48,6 +48,23 @@ def test_pose_ate_rpe_joins_runs():
     assert len(lines) == 2 + 4
 
 
+def test_pose_two_references_puts_each_reference_side_by_side_with_the_best_peer_of_each():
+    head = POSE_OUTPUT.splitlines()[:2]
+    rows = [
+        "| 7s | ours | 4.2 | 4.2 | 1 | 0.081 | 0 | 0.951 | 1 / 2 / 3 | 0 / 0 | 1.6 |",
+        "| 7s | O3D hybrid | 9.0 | 9.0 | 1 | 0.090 | 0 | 0.9 | 1 / 2 / 3 | - | 0.3 |",
+        "| 7s | O3D dense SLAM | 8.0 | 8.0 | 1 | 0.074 | 0 | 0.9 | 1 / 2 / 3 | - | 0.2 |",
+        "| 7s vs sfm | the sequence's own reference | 5.7 | 5.7 | 1 | 0.077 | 0 | 1.1 | 1 / 2 / 3 | - | - |",
+        "| 7s vs sfm | ours | 3.6 | 3.6 | 1 | 0.078 | 0 | 1.028 | 1 / 2 / 3 | 0 / 0 | 1.6 |",
+        "| 7s vs sfm | O3D hybrid | 10.9 | 10.9 | 1 | 0.070 | 0 | 1.0 | 1 / 2 / 3 | - | 0.3 |",
+        "| 7s vs sfm | O3D dense SLAM | 10.2 | 10.2 | 1 | 0.067 | 0 | 1.0 | 1 / 2 / 3 | - | 0.2 |",
+    ]
+    table = results.pose_two_references([results.Run("\n".join(head + rows), 1.0)], Path("."))
+    assert table.splitlines()[2] == ("| 7s | 5.7 / 0.077 | 4.2 / 0.081 | 8.0 / 0.074 (O3D dense SLAM) | 3.6 / 0.078 "
+                                     "| 10.2 / 0.067 (O3D dense SLAM) |")
+    assert len(table.splitlines()) == 3
+
+
 def test_e2e_gain_over_the_blurred_input_and_over_the_floor():
     header = ("| frames | image | pose s (CPU-s, cores) | refine s (CPU-s, cores) | deblur s (CPU-s, cores) | total s "
               "| s per frame | CPU-s per frame | peak RSS (MB) | Gaussians | ATE (mm) | test PSNR (dB) | test SSIM "
@@ -121,3 +138,8 @@ def test_a_table_that_needs_missing_data_names_the_fix(monkeypatch):
     monkeypatch.delenv("TAICHI_GS_TUM", raising=False)
     problems = results.missing_needs(results.TABLES["stage1_tum"])
     assert len(problems) == 1 and "TAICHI_GS_TUM" in problems[0] and "freiburg1_rpy" in problems[0]
+
+
+def test_machine_names_the_cpu_and_its_cores():
+    where = results.machine()
+    assert ", " in where and " cores" in where
