@@ -85,7 +85,7 @@ def _copy_without(run: Path, tmp_path: Path, *stages: str) -> Path:
 def test_run_is_read_per_stage(run_folder):
     scene = open_run(run_folder)
     assert scene.stages == ["pose", "refine", "deblur"]
-    deblur, refine, pose = scene.stage("deblur"), scene.stage("refine"), scene.stage("pose")
+    deblur, refine, pose = (scene.views[stage] for stage in ("deblur", "refine", "pose"))
     assert (deblur.gaussian_count, refine.gaussian_count, pose.gaussian_count) == (DEBLUR_GAUSSIANS, REFINE_GAUSSIANS, 0)
     assert pose.splats is None and len(pose.points[0]) == 2000
     assert deblur.exposures.shape == (FRAMES, 2, 4, 4) and refine.exposures is None and pose.exposures is None
@@ -127,6 +127,15 @@ def test_view_of_a_run_without_stage_output_fails_with_one_line(run_folder, tmp_
     result = runner.invoke(app, ["view", str(bare), "--port", "0"])
     assert result.exit_code == 2, result.output
     assert "no stage output" in result.output and len(result.output.strip().splitlines()) == 1
+
+
+def test_view_of_a_run_with_a_corrupt_stage_file_fails_with_one_line(run_folder, tmp_path):
+    pytest.importorskip("viser")
+    broken = _copy_without(run_folder, tmp_path)
+    (broken / "refine" / "splats.ply").write_bytes(b"ply\nnot a header\n")
+    result = runner.invoke(app, ["view", str(broken), "--port", "0"])
+    assert result.exit_code == 2, result.output
+    assert "splats.ply" in result.output and len(result.output.strip().splitlines()) == 1
 
 
 def test_view_without_the_extra_names_it(run_folder, monkeypatch):
@@ -277,7 +286,7 @@ def test_the_page_in_headless_chromium(viewer, tmp_path):
             # A click on the last camera's frustum (the cameras move forwards): the browser's camera is put in front
             # of it, looking back at its image plane, which lies ahead of every other frustum.
             last = FRAMES - 1
-            pose = viewer.scene.stage("deblur").poses[last]
+            pose = viewer.scene.views["deblur"].poses[last]
             client = next(iter(viewer.server.get_clients().values()))
             target = pose[:3, 3] + 0.5 * pose[:3, 2]
             client.camera.position, client.camera.look_at = target, pose[:3, 3]

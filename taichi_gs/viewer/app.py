@@ -114,7 +114,7 @@ class RunViewer:
         with self._lock:
             if name == self.stage_name:
                 return
-            view = self.scene.stage(name)
+            view = self.scene.views[name]
             for node in self._nodes:
                 node.remove()
             self._nodes, self._frustums, self.stage_name = [], [], name
@@ -177,7 +177,7 @@ class RunViewer:
         with self._lock:
             if self._shown == (self.stage_name, frame):
                 return
-            view = self.scene.stage(self.stage_name)
+            view = self.scene.views[self.stage_name]
             render, what = self.scene.stored_render(view, frame), "sharp render"
             if render is None and view.splats is not None:
                 render, what = self._render_now(view, frame), "render"

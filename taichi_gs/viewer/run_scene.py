@@ -6,9 +6,10 @@ sequence is reopened from OUT/run.json for the blurred frames.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
@@ -73,29 +74,29 @@ def gaussian_arrays(splats: Splats) -> tuple[np.ndarray, np.ndarray, np.ndarray,
 
 @dataclass
 class RunScene:
-    """A run folder opened for viewing: its input sequence and the stages that have outputs (loaded on
-    first use)."""
+    """A run folder opened for viewing: its input sequence and each stage that has outputs, in pipeline order."""
 
     run_dir: Path
     sequence: Sequence
-    stages: list[str]
-    _loaded: dict[str, StageView] = field(default_factory=dict, repr=False)
+    views: dict[str, StageView]
 
-    def stage(self, name: str) -> StageView:
-        if name not in self._loaded:
-            self._loaded[name] = load_stage(self.run_dir, name, self.sequence)
-        return self._loaded[name]
+    @property
+    def stages(self) -> list[str]:
+        return list(self.views)
 
     def input_image(self, frame: int) -> np.ndarray:
         """The blurred input frame as 8-bit RGB."""
         return to_uint8(self.sequence.color(frame))
 
     def stored_render(self, view: StageView, frame: int) -> np.ndarray | None:
-        """The stage's stored sharp render of ``frame`` as 8-bit RGB, or None without one."""
-        if view.renders is None:
+        """The stage's stored sharp render of ``frame`` as 8-bit RGB at the input's size, or None without one."""
+        path = None if view.renders is None else view.renders / f"{self.sequence.names[frame]}.png"
+        if path is None or not path.is_file():
             return None
-        path = view.renders / f"{self.sequence.names[frame]}.png"
-        return to_uint8(read_color(path)) if path.is_file() else None
+        render, intr = read_color(path), self.sequence.intrinsics
+        if render.shape[:2] != (intr.height, intr.width):  # a run whose frames were read at another --scale
+            render = cv2.resize(render, (intr.width, intr.height), interpolation=cv2.INTER_AREA)
+        return to_uint8(render)
 
     def live_render(self, view: StageView, frame: int) -> np.ndarray:
         """The stage's splats rendered at ``frame``'s pose, 8-bit RGB (Taichi initialised by the caller)."""
@@ -116,4 +117,4 @@ def open_run(run_dir: Path) -> RunScene:
     if not stages:
         raise InputError(run_dir, "no stage output to show (pose/, refine/ or deblur/ with trajectory.txt and a PLY)",
                          "run 'taichi-gs reconstruct SEQUENCE --out' on this folder first")
-    return RunScene(run_dir, sequence, stages)
+    return RunScene(run_dir, sequence, {stage: load_stage(run_dir, stage, sequence) for stage in stages})
