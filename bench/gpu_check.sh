@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The GPU checks in one call, for a session lent a GPU machine (BENCHMARKS.md, "First measurements on
-# a GPU"): the CUDA tests, the rasterizer bench, then stage 3 (deblur + eval, --profile) on each run
+# The GPU checks in one call, for a session lent a GPU machine (docs/notebook/benchmarks-2026-11.md, "First
+# measurements on a GPU"): the CUDA tests, the rasterizer bench, then stage 3 (deblur + eval, --profile) on each run
 # folder given, optionally against another code root (an A/B in one call, baseline first).
 #
 #   bash bench/gpu_check.sh [RUN ...]

@@ -65,8 +65,8 @@ def finest_scale(preset_scale: int, width: int, finest_width_px: int) -> int:
     """DIS's finest pyramid level (0: full resolution, s: 2^-s of it): the preset's, or a finer one so that the
     level is at least ``finest_width_px`` wide (0: the preset's). [ours] The medium preset stops at half
     resolution; on 320 px wide blurred frames its flow fits the camera's translation about 3.5% short (a 60-frame
-    synthetic translation and 7-Scenes at every 3rd frame, x0.5), at full resolution 2% and 0% (BENCHMARKS,
-    "DIS at full resolution below 640 px")."""
+    synthetic translation and 7-Scenes at every 3rd frame, x0.5), at full resolution 2% and 0%
+    (docs/notebook/benchmarks-2026-11.md, "DIS at full resolution below 640 px")."""
     if finest_width_px <= 0:
         return preset_scale
     finest = 0

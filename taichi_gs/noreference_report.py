@@ -15,9 +15,9 @@ Per split (``test`` = held-out views, ``train``), means over views of:
   above: a capture whose exposures draw 1-2 px streaks has next to no blur to remove, and held-out frames
   whose own exposures draw as long streaks as their neighbours' are not sharp references. The learned start and
   end are the first and last of the k virtual views, so a continuous shutter of the same blur is about
-  k / (k - 1) longer (BENCHMARKS.md, "Why the learned exposures look short"). ``true_exposure_px`` is the same
-  over the sequence's own exposure.txt where it has one (synthetic data; the generator samples its exposure at
-  both ends too, with one sub-frame per 0.8 px of its longest streak).
+  k / (k - 1) longer (docs/notebook/benchmarks-2026-11.md, "Why the learned exposures look short").
+  ``true_exposure_px`` is the same over the sequence's own exposure.txt where it has one (synthetic data; the
+  generator samples its exposure at both ends too, with one sub-frame per 0.8 px of its longest streak).
 And for held-out views only:
 - ``held_out_psnr_db`` / ``held_out_ssim``: sharp render against the held-out frame's own image.
   With ``holdout = "sharpest"`` those frames are the least blurred of their windows: the closest

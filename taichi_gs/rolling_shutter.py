@@ -1,10 +1,10 @@
 """[ours] Rolling shutters: a camera that reads its image rows one after another, top to bottom, over a
 readout time, so that each row sees the scene from where the camera was when that row was read. Kinect v1's
-colour camera is one (BENCHMARKS, "A rolling shutter in TUM's Kinect frames"). Stage 3 models it by warping
-each virtual view's rows from global-shutter renders at the row's own pose (``deblur_model``, ``kernels.warp``);
-stages 1 and 2 de-skew the frames instead: each frame's colour and depth moved to the pose of its middle row
-(:class:`DeskewedSequence`). The camera's motion over the readout comes from the trajectory (the neighbouring
-frames' poses)."""
+colour camera is one (docs/notebook/benchmarks-2026-11.md, "A rolling shutter in TUM's Kinect frames"). Stage 3
+models it by warping each virtual view's rows from global-shutter renders at the row's own pose (``deblur_model``,
+``kernels.warp``); stages 1 and 2 de-skew the frames instead: each frame's colour and depth moved to the pose of its
+middle row (:class:`DeskewedSequence`). The camera's motion over the readout comes from the trajectory (the
+neighbouring frames' poses)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,9 @@ from .geometry import adjoint, invert, median_depths, se3_exp, se3_log
 from .io.sequence import READOUT_KEY
 
 # Readouts (ms) of the colour cameras of known (format, camera) readings: Kinect v1's, 25 ms, the best of 0, 15, 25
-# and 35 ms on a TUM fr1 stretch and near bench/rolling_shutter_readout.py's estimates (BENCHMARKS.md, "A rolling
-# shutter in TUM's Kinect frames"). 7-Scenes was shot with a Kinect v1 as well.
+# and 35 ms on a TUM fr1 stretch and near bench/rolling_shutter_readout.py's estimates
+# (docs/notebook/benchmarks-2026-11.md, "A rolling shutter in TUM's Kinect frames"). 7-Scenes was shot with a Kinect
+# v1 as well.
 KNOWN_READOUT_MS = {("tum", "fr1"): 25.0, ("7scenes", "registered"): 25.0, ("7scenes", "shipped"): 25.0}
 
 

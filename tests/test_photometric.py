@@ -77,7 +77,7 @@ def test_schedule_scales_with_training_views():
     assert fast.iterations_per_view == 80 and PRESETS["paper"].iterations_per_view == 0  # the method: fixed count
     assert fast.iterations == 840
     assert scaled_schedule(fast, 10) is fast  # 800 < 840: unchanged
-    sample = scaled_schedule(fast, 11)  # the bundled sample's 11 training views: the schedule BENCHMARKS measured
+    sample = scaled_schedule(fast, 11)  # the bundled sample's 11 training views: the schedule the notebook measured
     assert (sample.iterations, sample.densify_from, sample.densify_until, sample.densify_every,
             sample.exposure_from) == (880, 73, 330, 73, 88)
     long = scaled_schedule(fast, 21)
@@ -95,7 +95,7 @@ def test_the_cap_leaves_headroom_above_what_stage_2_hands_over():
     fast, paper = PRESETS["fast"], PRESETS["paper"]
     assert fast.densify_headroom == 1.3 and paper.densify_headroom == 0.0  # the method: its cap alone
     assert with_headroom(fast, 72_663) is fast  # the bundled sample's stage 2: 1.3 x 72,663 < 100k, unchanged
-    assert with_headroom(fast, 192_923).max_gaussians == 250_800  # a 60-frame sequence's stage 2 (BENCHMARKS)
+    assert with_headroom(fast, 192_923).max_gaussians == 250_800  # a 60-frame sequence's stage 2 (docs/notebook)
     assert with_headroom(paper, 10_000_000) is paper
 
 

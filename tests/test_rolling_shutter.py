@@ -131,7 +131,8 @@ def _measured_readout_ms(tmp_path, readout_ms: float) -> float:
 
 def test_the_readout_bench_finds_a_rolling_shutter_and_none_in_a_global_one(tmp_path):
     """The bench's estimate: near 0 for a global shutter, and for a 20 ms readout between 15 and 30 ms (it reads
-    about 1.3x long on synthetic hand-held clips: BENCHMARKS.md, "A rolling shutter in TUM's Kinect frames")."""
+    about 1.3x long on synthetic hand-held clips: docs/notebook/benchmarks-2026-11.md, "A rolling shutter in TUM's
+    Kinect frames")."""
     assert abs(_measured_readout_ms(tmp_path, 0.0)) < 3.0
     assert 15.0 < _measured_readout_ms(tmp_path, 20.0) < 30.0
 

@@ -168,11 +168,13 @@ def _kernels(dt) -> SimpleNamespace:
     # D-SSIM's four passes check the window's taps against the image edge only near it: rows and columns at
     # least SSIM_RADIUS pixels inside run unchecked (branch-free) sums, adding the taps in the same order.
     # Its scratch records are flat arrays, indexed once per tap (a multi-dimensional ndarray index costs
-    # integer arithmetic per access on the CPU backend): 0.64x the kernel's time at 256x192 (BENCHMARKS).
+    # integer arithmetic per access on the CPU backend): 0.64x the kernel's time at 256x192
+    # (docs/notebook/benchmarks-2026-11.md, "D-SSIM and the blending passes on flat scratch records").
     # The taps are a loop over the window's weights (a device array), not unrolled: with 11 taps unrolled in each
     # pass and variant the kernel took 27 s to compile from an empty offline cache and 1.8 s to load from a full
     # one (the Python front end unrolls before the cache is consulted); the channels stay unrolled (a channel
-    # loop made it 1.1-1.25x slower). BENCHMARKS, "Compile time: D-SSIM's window taps as a loop".
+    # loop made it 1.1-1.25x slower). docs/notebook/benchmarks-2026-11.md, "Compile time: D-SSIM's window taps as a
+    # loop".
     taps = 2 * SSIM_RADIUS + 1
 
     @ti.func

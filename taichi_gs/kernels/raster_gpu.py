@@ -20,7 +20,7 @@ backward
      last contributor (batches from the back, starting at the tile's largest last index); each
      pixel's contribution to a record's 10 screen-space gradients is added atomically to that
      slot's row (Taichi 1.7's SPIR-V backend has no float atomics on shared memory, so there is
-     no shared-memory pre-reduction yet: see BENCHMARKS.md);
+     no shared-memory pre-reduction yet: see docs/notebook/benchmarks-2026-11.md, "GPU kernels (block per tile)");
   5. per Gaussian (one thread each, depth order): sum of its slots' rows, projection backward,
      its pose term; the pose terms are summed by a multi-level block reduction.
 """

@@ -10,8 +10,8 @@ float64 kernels need CPU or CUDA: Taichi's SPIR-V code generator (Vulkan, Metal)
 ``exp``. [ours] The CPU backend is started with :data:`CPU_THREADS_PER_CORE` threads per core the process may
 use (``TI_CPU_MAX_NUM_THREADS`` sets the count instead): measured at 0.88-0.94x the time of one per core. Taichi
 1.7.4 then holds that many pool threads, though on 2 cores only two of them take work; what the count buys is
-finer pieces, since Taichi cuts each parallel loop into that many contiguous ones (BENCHMARKS.md, "Which of
-Taichi's threads take work" and "A parallel loop is cut into as many contiguous pieces ...").
+finer pieces, since Taichi cuts each parallel loop into that many contiguous ones (docs/notebook/benchmarks-2026-11.md,
+"Which of Taichi's threads take work" and "A parallel loop is cut into as many contiguous pieces ...").
 """
 
 from __future__ import annotations
@@ -35,7 +35,8 @@ from . import devices
 ARCH_CHOICES = ("auto", "cpu", "cuda", "vulkan", "metal")
 ARCH_ENV = "TAICHI_GS_ARCH"
 CPU_THREADS_ENV = "TI_CPU_MAX_NUM_THREADS"  # Taichi's own setting of the CPU thread count
-CPU_THREADS_PER_CORE = 2  # measured on 2 cores: renders 0.93x the time (BENCHMARKS, "Two CPU threads per core")
+# measured on 2 cores: renders 0.93x the time (docs/notebook/benchmarks-2026-11.md, "Two CPU threads per core")
+CPU_THREADS_PER_CORE = 2
 F64_ARCHS = ("cpu", "cuda")
 
 

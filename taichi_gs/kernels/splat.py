@@ -132,9 +132,9 @@ def _kernels(dt) -> SimpleNamespace:
             tiles.emit_slots(g, rect, offsets, slot_gid, slot_tile, tiles_x)
         # stable counting sort of the slots by tile: each of COUNT_RUNS runs of slots counts its tiles in its own
         # row of tile_cursor (no atomics: two threads' atomic counters on a few hundred tiles cost more than the
-        # whole pass; BENCHMARKS, "The render's sort without atomics"), one thread turns the counts into each run's
-        # first position per tile, then the runs place their slots' (depth, slot) keys side by side; each tile's
-        # keys are then sorted as integers
+        # whole pass; docs/notebook/benchmarks-2026-11.md, "The render's sort without atomics"), one thread turns the
+        # counts into each run's first position per tile, then the runs place their slots' (depth, slot) keys side
+        # by side; each tile's keys are then sorted as integers
         for i in range(COUNT_RUNS * spread):
             if i % spread == 0:
                 c = i // spread

@@ -149,18 +149,19 @@ class DeblurConfig:
     # [ours] after the last densification, drop the Gaussians of least blending weight (summed over the training
     # views' sharp mid-exposure renders: LightGaussian's global significance) that together make at most this
     # share of the images; the rest of the run trains and renders fewer Gaussians (0 = off). 0.01: 27-35% fewer
-    # Gaussians, -0.04 to -0.07 dB held-out, 0.91-0.95x the stage-3 time (BENCHMARKS, "Significance pruning")
+    # Gaussians, -0.04 to -0.07 dB held-out, 0.91-0.95x the stage-3 time (docs/notebook/benchmarks-2026-11.md,
+    # "Significance pruning")
     prune_weight_share: float = 0.0
     # [ours] warped virtual views: render only the fewest anchor views (padded by warp_px + 2 pixels; an odd
     # number, one at mid-exposure) that leave every virtual view within warp_px of one, and make the k views
     # by warping the anchors' renders through their depth (exact for rotations; disocclusions of
-    # translations are approximated). 12 px: BENCHMARKS, "One anchor at mid-exposure"
+    # translations are approximated). 12 px: docs/notebook/benchmarks-2026-11.md, "One anchor at mid-exposure"
     warp_views: bool = False
     warp_px: float = 12.0
     # [ours] with warp_views and adaptive_k, an even count of views is raised by one (within k) where that
     # interpolates no more views: the added view puts one at each odd group's anchor pose, which the warp
     # reads instead of interpolating, so the exposure is sampled more finely at the same cost
-    # (BENCHMARKS, "Odd view counts")
+    # (docs/notebook/benchmarks-2026-11.md, "Odd view counts")
     odd_views: bool = False
     # [ours] after training (and the held-out fits), move the scene and every exposure by the scale and
     # translation that map the training frames' mid-exposure centres back onto stage 2's (stages/gauge.py):
@@ -194,8 +195,8 @@ PRESETS = {
     # the scene to settle; full resolution (training at half size left speckles at full size: -7 dB on the sample).
     # k = 8 for time, so fast holds the k-view blur sum to 2 px steps (exposures up to 14 px; the
     # sample's learned exposures reach 12.2 px, a TUM slice's 13.8 px: with k = 7, 12 px, both warned;
-    # adaptive_k spends the eighth view only where an exposure needs it; BENCHMARKS, "k up to 8"); k = 9 with
-    # odd_views (below) interpolates no more views than k = 8 did, and covers 16 px at 2 px steps;
+    # adaptive_k spends the eighth view only where an exposure needs it; docs/notebook/benchmarks-2026-11.md, "k up to
+    # 8"); k = 9 with odd_views (below) interpolates no more views than k = 8 did, and covers 16 px at 2 px steps;
     # paper keeps the method's 1 px rule of thumb with k = 15.
     # The schedule below is the shortest (840 iterations: 10 training views at 80 per view); longer sequences
     # scale it (scaled_schedule), and from 15 views on that gives exactly the schedule of the 1200-iteration base
@@ -204,53 +205,62 @@ PRESETS = {
                          densify_until=315, densify_every=70, max_gaussians=100_000, reset_opacity_every=0,
                          lr_exposure=2e-3, exposure_from=84, checkpoint_every=100,
                          # [ours] real captures: +1.2 dB on held-out sharpest frames of a 7-Scenes slice,
-                         # +0.06 dB on synthetic (BENCHMARKS, "Stage 3 on real captures")
+                         # +0.06 dB on synthetic (docs/notebook/benchmarks-2026-11.md, "Stage 3 on real captures")
                          colour_affine=True, fill_uncovered=True, epoch_sampling=True,
                          # [ours] k per exposure (3..k views at 2 px steps): 0.75x the stage-3 CPU time on the
-                         # sample at +0.08 dB held-out PSNR with k = 7 (BENCHMARKS, "Quality per minute")
+                         # sample at +0.08 dB held-out PSNR with k = 7 (docs/notebook/benchmarks-2026-11.md, "Quality
+                         # per minute")
                          adaptive_k=True,
                          # [ours] 80 steps per training view (40 per view gave +1.8 dB held-out on a 60-frame
-                         # sequence and +0.55 dB on a real capture, BENCHMARKS "Steps per view"); affordable with
+                         # sequence and +0.55 dB on a real capture, docs/notebook/benchmarks-2026-11.md, "Steps per
+                         # view"); affordable with
                          # warped views (below). Short sequences too: the base used to be 1200 iterations up to 15
                          # views; 880 on three 16-frame clips (11 views) took 0.68-0.83x the stage-3 time at -0.02
-                         # to -0.23 dB held-out (BENCHMARKS, "Short sequences at 80 steps per view")
+                         # to -0.23 dB held-out (docs/notebook/benchmarks-2026-11.md, "Short sequences at 80 steps per
+                         # view")
                          iterations_per_view=80,
                          # [ours] held-out fits by Rprop: 20 steps score like Adam's 30 on the sample and on a real
-                         # capture (BENCHMARKS, "Held-out fits by Rprop"); the Adam fit took 30. On frozen anchors
+                         # capture (docs/notebook/benchmarks-2026-11.md, "Held-out fits by Rprop"); the Adam fit took
+                         # 30. On frozen anchors
                          # (below) a step costs about a quarter of a rendered one, so the fits take 40 steps in
                          # 0.42-0.63x the time of 20 rendered ones: held-out PSNR -0.01 to +0.07 dB, re-blur +0.05 to
-                         # +0.34 dB on three synthetic clips and a real slice (BENCHMARKS, "Held-out fits on frozen
-                         # anchors")
+                         # +0.34 dB on three synthetic clips and a real slice (docs/notebook/benchmarks-2026-11.md,
+                         # "Held-out fits on frozen anchors")
                          test_pose_iterations=40, test_fit="rprop", test_fit_refresh_px=1.0,
                          # [ours] held-out fits start from their training neighbours' learned mid-exposure
                          # correction: +0.02 to +0.21 dB held-out at the same 20 steps on the sample and three real
-                         # slices (BENCHMARKS, "How much of a real capture's held-out figure is the held-out fit")
+                         # slices (docs/notebook/benchmarks-2026-11.md, "How much of a real capture's held-out figure is
+                         # the held-out fit")
                          test_fit_from_neighbours=True,
                          # [ours] Gaussians in Morton order in memory: 0.86-0.88x the stage-3 CPU-seconds on the
-                         # sample and a 60-frame sequence, held-out PSNR within 0.01 dB (BENCHMARKS, "Morton order
-                         # on in the fast preset")
+                         # sample and a 60-frame sequence, held-out PSNR within 0.01 dB
+                         # (docs/notebook/benchmarks-2026-11.md, "Morton order on in the fast preset")
                          spatial_order=True,
                          # [ours] 4 px steps between virtual views for the first 30% of the iterations: 0.91x the
                          # stage-3 CPU time on the sample at +0.06 dB held-out; a real capture at 50% lost nothing
-                         # (BENCHMARKS, "Fewer virtual views while the scene is soft")
+                         # (docs/notebook/benchmarks-2026-11.md, "Fewer virtual views while the scene is soft")
                          early_views_fraction=0.3,
                          # [ours] warped virtual views at twice the steps (1200 iterations, 80 per view) against
                          # rendered views at 600 / 40: 0.69-0.96x the stage-3 time, held-out PSNR +0.09 dB on the
-                         # sample, +0.16 / +0.36 dB on two real captures (BENCHMARKS, "Warped virtual views")
+                         # sample, +0.16 / +0.36 dB on two real captures (docs/notebook/benchmarks-2026-11.md, "Warped
+                         # virtual views")
                          warp_views=True,
                          # [ours] odd view counts: 0.998-1.006x the stage-3 time, held-out PSNR +0.01 and +0.06 dB on
-                         # two synthetic sequences, -0.03 and 0.00 dB on two real slices (BENCHMARKS, "Odd view counts")
+                         # two synthetic sequences, -0.03 and 0.00 dB on two real slices
+                         # (docs/notebook/benchmarks-2026-11.md, "Odd view counts")
                          odd_views=True,
                          # [ours] room to densify above stage 2's count: three sequences handed over 157-193k
                          # Gaussians (above the 100k cap: they never densified or filled) gained +0.18 to +0.32 dB
                          # held-out at 1.03-1.09x the stage-3 time; scenes handed over under 77k are unchanged
-                         # (BENCHMARKS, "Room to densify")
+                         # (docs/notebook/benchmarks-2026-11.md, "Room to densify")
                          densify_headroom=1.3,
-                         # [ours] the output in stage 2's frame (BENCHMARKS, "Stage 3 back in stage 2's frame")
+                         # [ours] the output in stage 2's frame (docs/notebook/benchmarks-2026-11.md, "Stage 3 back in
+                         # stage 2's frame")
                          keep_frame=True,
                          # [ours] Kinect v1's rolling shutter where the reading names one (TUM fr1, 7-Scenes): held-out
                          # re-blur +2.3 dB on two TUM stretches, +0.16 to +0.30 dB on two 7-Scenes slices, at 1.11x the
-                         # stage-3 time (BENCHMARKS, "A rolling shutter in TUM's Kinect frames")
+                         # stage-3 time (docs/notebook/benchmarks-2026-11.md, "A rolling shutter in TUM's Kinect
+                         # frames")
                          camera_readout=True),
 }
 

@@ -105,7 +105,8 @@ class PoseConfig:
     # edge's flows), so an edge along a plain wall is not only RGB-D odometry, which slides there. On 18
     # synthetic 60-frame sequences ATE sums 53.2 -> 45.7 mm (plain hand-held 9.5 -> 3.5, 4.9 -> 1.7; corridor
     # hand-held 3.4 -> 5.2), on eight real slices within +-0.6 mm but one (+2.0 mm, RPE rotation 0.91 -> 0.53 deg),
-    # for about 1.2x stage 1's time (BENCHMARKS, "The joint candidate on the graph's edges, on by default")
+    # for about 1.2x stage 1's time (docs/notebook/benchmarks-2026-11.md, "The joint candidate on the graph's edges, on
+    # by default")
     graph_joint: bool = True
     # [ours] RGB-D odometry iterations per pyramid level of the extra edges, which start from the chained
     # poses (the pairs' own odometry keeps rgbd_iterations)
@@ -126,7 +127,8 @@ class PoseConfig:
     # chained cameras are as close as a loop closure's (loop_max_distance_m, loop_max_angle_deg); verified like
     # the other extra edges but not held to graph_max_score_ratio, whose 1.5x the median pair score admits almost
     # none that long. They bound the drift of long, slowly moving captures: 7-Scenes' 250 frames 35.1 -> 17.2 mm,
-    # TUM fr1_rpy 14.2 -> 13.0 mm, at 1.09x the stage's time (BENCHMARKS, "Long edges from every 4th frame").
+    # TUM fr1_rpy 14.2 -> 13.0 mm, at 1.09x the stage's time (docs/notebook/benchmarks-2026-11.md, "Long edges from
+    # every 4th frame").
     # From every frame: four times the edges, 1.31x the time, no better on 7-Scenes. () turns them off.
     graph_long_spans: tuple = (16, 32)
     graph_long_every: int = 4

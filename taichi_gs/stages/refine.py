@@ -128,8 +128,8 @@ PRESETS = {
     # [ours] CPU-sized: stage 2 hands stage 1's poses and fused cloud to stage 3 untrained. Its 60 N iterations (the
     # schedule below, with iterations_per_frame = FAST_TRAINING_PER_FRAME) took 30% of the sample's run, and the
     # refined poses never passed the acceptance test in the fast preset; stage 3 from the untrained cloud scored
-    # -0.05 to +0.21 dB held-out on five synthetic and real sequences, the sample in 0.91x the time (BENCHMARKS,
-    # "Stage 3 straight from stage 1's cloud")
+    # -0.05 to +0.21 dB held-out on five synthetic and real sequences, the sample in 0.91x the time
+    # (docs/notebook/benchmarks-2026-11.md, "Stage 3 straight from stage 1's cloud")
     "fast": RefineConfig(iterations_per_frame=0, prune_every_per_frame=20, reset_every_per_frame=40,
                          checkpoint_every=200, spatial_order=True, camera_readout=True),
 }

@@ -10,7 +10,7 @@ depth camera's, and its poses (KinectFusion's) are the depth camera's. ``--camer
   526.5 px for 585, the same principal point, 2.5 cm from the depth camera along x: depth edges
   reprojected onto colour edges over RedKitchen frames 0, 25, ..., 225 on grids of 5.9 px and 6 mm,
   edge correlation 0.17 -> 0.28;
-  BENCHMARKS.md, "Depth-colour registration"); depth is moved into it as it is read
+  docs/notebook/benchmarks-2026-11.md, "Depth-colour registration"); depth is moved into it as it is read
   (``io.registration``) and the poses to it. intrinsics.json and the flags set the colour camera;
   intrinsics.json's ``depth_camera`` replaces the depth camera and its offset.
 - ``shipped``: as distributed, colour and depth taken as one camera with the dataset's K (colour

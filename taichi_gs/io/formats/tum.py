@@ -22,9 +22,10 @@ from .common import ReadOptions, check_published_size, json_keys
 
 NAME = "tum"
 # [ours] Seconds by which a Freiburg 1 depth frame's stamp trails the moment its depth shows, measured on fr1_rpy:
-# depth edges sit where the colour frame saw them about 15 ms before the depth stamp (BENCHMARKS, "TUM's depth
-# frames show an earlier moment than their stamps"). Colour frames are paired with depth stamps minus it, so where
-# the two streams run half a frame apart a colour frame takes the depth frame after it, not the one before.
+# depth edges sit where the colour frame saw them about 15 ms before the depth stamp
+# (docs/notebook/benchmarks-2026-11.md, "TUM's depth frames show an earlier moment than their stamps"). Colour frames
+# are paired with depth stamps minus it, so where the two streams run half a frame apart a colour frame takes the
+# depth frame after it, not the one before.
 # fr2 and fr3 are not measured and keep 0.
 FR1_DEPTH_LATENCY_S = 0.015
 # https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats#intrinsic_camera_calibration_of_the_kinect
