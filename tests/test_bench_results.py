@@ -129,9 +129,9 @@ def test_every_table_is_listed_with_its_command_and_fills_its_placeholders():
 
 
 def test_stamp_names_date_machine_and_command():
-    line = results.stamp(results.TABLES["raster_cpu"], "2026-12-07", "Some CPU, 2 cores")
-    assert line == ("Measured 2026-12-07 on Some CPU, 2 cores. Regenerate: `python bench/results.py raster_cpu` "
-                    "(runs `python bench/raster.py --arch cpu --quick`).")
+    line = results.stamp(results.TABLES["raster_cuda"], "2026-12-07", "Some CPU, 2 cores, a GPU")
+    assert line == ("Measured 2026-12-07 on Some CPU, 2 cores, a GPU. Regenerate: `python bench/results.py raster_cuda` "
+                    "(runs `python bench/raster.py --arch cuda --quick`).")
 
 
 def test_a_table_that_needs_missing_data_names_the_fix(monkeypatch):
