@@ -1,0 +1,167 @@
+"""Real extreme blur with a sharp reference (issue 84): taichi-gs on sequences made by ``taichi-gs import --average W``
+(W consecutive real frames averaged in linear light; the centre frame is the sharp reference, its depth and pose).
+
+    python bench/real_blur.py SEQ [SEQ ...] --out DIR [--arm "NAME=FILE.toml" ...] [--no-paper] [--json OUT]
+        [--peers "O3D hybrid,O3D ICP"]
+
+Per sequence folder (never written):
+- ours: ``taichi-gs reconstruct SEQ`` (the default ``fast`` preset) in DIR/NAME/ours, then ``taichi-gs eval --json``;
+- paper: the same with ``--preset paper`` (the paper's schedules: 30000 stage-3 iterations, hours on a CPU;
+  ``--no-paper`` leaves it out);
+- each ``--arm NAME=FILE.toml``: stage 3 alone (``taichi-gs deblur --config FILE``) on a copy of ours' stage-1 and
+  stage-2 folders, in DIR/NAME/ARM (its seconds are ours' stages 1-2 plus its own stage 3).
+Finished runs are read back (a killed benchmark resumes). With ``--peers``, ``bench/pose.py --sequence`` scores
+those stage-1 peers on the same folders (its own table, printed after ours).
+
+Prints one Markdown table, a row per sequence and method: W, size, frames, the median streak of the exposures
+(blur.json, pixels), ATE after stage 1 and of the final (stage-3 mid-exposure) trajectory (mm), held-out PSNR / SSIM
+of the sharp renders against the centre frames, the blurred input's against the same frames, the gain, and the
+run's wall seconds per frame. The grids to judge by eye are each run's report/test_views.png (input | ours | centre
+frame | depth), listed after the table. ``--json OUT`` writes the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+CLI = [sys.executable, "-m", "taichi_gs.cli"]
+STAGE_1_2 = ("pose", "refine")
+
+
+def _run(args: list[str], log: Path) -> None:
+    """Run a taichi-gs command, its output appended to ``log``; a failure stops the benchmark with the log's tail."""
+    with log.open("a") as handle:
+        done = subprocess.run([*CLI, *args], cwd=ROOT, stdout=handle, stderr=subprocess.STDOUT)
+    if done.returncode != 0:
+        tail = log.read_text().splitlines()[-20:]
+        sys.exit(f"{' '.join(args)} failed (exit {done.returncode}); {log}:\n" + "\n".join(tail))
+
+
+def _evaluate(run: Path) -> dict[str, Any]:
+    """``taichi-gs eval --json`` of a run folder (metrics.json is read back when it is newer than stage 3)."""
+    metrics, done = run / "metrics.json", run / "deblur" / "done.json"
+    if not (metrics.is_file() and done.is_file() and metrics.stat().st_mtime >= done.stat().st_mtime):
+        _run(["eval", str(run), "--json", "--quiet"], run.parent / f"{run.name}.log")
+    return json.loads(metrics.read_text())
+
+
+def reconstruct(sequence: Path, run: Path, preset: str) -> dict[str, Any]:
+    """A whole run with ``preset`` (resumed where it stopped), evaluated."""
+    run.parent.mkdir(parents=True, exist_ok=True)
+    if not (run / "deblur" / "done.json").is_file():
+        _run(["reconstruct", str(sequence), "--out", str(run), "--preset", preset, "--quiet"],
+             run.parent / f"{run.name}.log")
+    return _evaluate(run)
+
+
+def arm(base: Path, run: Path, config: Path) -> dict[str, Any]:
+    """Stage 3 with ``config`` on a copy of ``base``'s stages 1 and 2, evaluated."""
+    if not (run / "deblur" / "done.json").is_file():
+        shutil.rmtree(run, ignore_errors=True)
+        shutil.copytree(base, run, ignore=lambda folder, names: [n for n in names if folder == str(base)
+                                                                 and n in ("deblur", "report", "metrics.json")])
+        _run(["deblur", str(run), "--config", str(config), "--quiet"], run.parent / f"{run.name}.log")
+    return _evaluate(run)
+
+
+def sequence_facts(sequence: Path) -> dict[str, Any]:
+    """W, image size, frame count and median streak (pixels) of an averaged sequence folder."""
+    intrinsics = json.loads((sequence / "intrinsics.json").read_text())
+    frames = [line for line in (sequence / "frames.txt").read_text().splitlines() if line and line[0] != "#"]
+    blur_path = sequence / "blur.json"
+    blur = json.loads(blur_path.read_text()) if blur_path.is_file() else {}
+    streaks = sorted(f["median_px"] for f in blur.get("frames", []) if f.get("median_px") is not None)
+    return {"window": blur.get("window"), "size": f"{intrinsics['width']}x{intrinsics['height']}",
+            "frames": len(frames), "streak_px": streaks[len(streaks) // 2] if streaks else None}
+
+
+def row(sequence: Path, method: str, metrics: dict[str, Any], seconds: float) -> dict[str, Any]:
+    """One table row from a run's metrics."""
+    trajectory, test = metrics.get("trajectory") or {}, (metrics.get("images") or {}).get("test") or {}
+    facts = sequence_facts(sequence)
+    final = next((trajectory[s] for s in ("deblur", "refine", "pose") if s in trajectory), {})
+    return {"sequence": sequence.name, "method": method, **facts,
+            "stage1_ate_mm": _mm((trajectory.get("pose") or {}).get("ate_m")), "final_ate_mm": _mm(final.get("ate_m")),
+            "psnr_db": test.get("psnr_db"), "ssim": test.get("ssim"),
+            "input_psnr_db": test.get("blurred_input_psnr_db"), "input_ssim": test.get("blurred_input_ssim"),
+            "seconds_per_frame": seconds / facts["frames"]}
+
+
+def _mm(metres: float | None) -> float | None:
+    return None if metres is None else 1000.0 * metres
+
+
+def stage_seconds(metrics: dict[str, Any], stages: tuple[str, ...]) -> float:
+    """Wall seconds of ``stages`` as the run recorded them."""
+    return sum((metrics["stages"].get(s) or {}).get("seconds") or 0.0 for s in stages)
+
+
+def _cell(value: float | None, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def table(rows: list[dict[str, Any]]) -> str:
+    """The Markdown table of ``rows``."""
+    lines = ["| sequence | W | size | frames | streak px | method | stage-1 ATE mm | final ATE mm | held-out PSNR / SSIM "
+             "| input PSNR / SSIM | gain dB / SSIM | s / frame |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        gain = (None, None) if r["psnr_db"] is None or r["input_psnr_db"] is None else \
+            (r["psnr_db"] - r["input_psnr_db"], r["ssim"] - r["input_ssim"])
+        lines.append(f"| {r['sequence']} | {r['window'] or '-'} | {r['size']} | {r['frames']} | "
+                     f"{_cell(r['streak_px'], 1)} | {r['method']} | {_cell(r['stage1_ate_mm'], 1)} | "
+                     f"{_cell(r['final_ate_mm'], 1)} | {_cell(r['psnr_db'], 2)} / {_cell(r['ssim'], 3)} | "
+                     f"{_cell(r['input_psnr_db'], 2)} / {_cell(r['input_ssim'], 3)} | "
+                     f"{_cell(gain[0], 2)} / {_cell(gain[1], 3)} | {_cell(r['seconds_per_frame'], 1)} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("sequences", type=Path, nargs="+", help="folders made by taichi-gs import --average W")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--arm", action="append", default=[], help="NAME=FILE.toml: stage 3 with this config")
+    parser.add_argument("--no-paper", action="store_true", help="leave out the paper preset (hours on a CPU)")
+    parser.add_argument("--json", type=Path, default=None, help="write the rows here")
+    parser.add_argument("--peers", default="", help="bench/pose.py --methods for the stage-1 peers' ATE")
+    args = parser.parse_args()
+    arms = [tuple(a.split("=", 1)) for a in args.arm]
+    if any(len(a) != 2 or not Path(a[1]).is_file() for a in arms):
+        sys.exit(f"--arm needs NAME=FILE.toml with an existing file, got {args.arm}")
+    rows, grids = [], []
+    for sequence in args.sequences:
+        if not (sequence / "frames.txt").is_file():
+            sys.exit(f"{sequence}: not a sequence folder (no frames.txt); make one with taichi-gs import --average W")
+        folder = args.out / sequence.name
+        ours = reconstruct(sequence, folder / "ours", "fast")
+        runs = [("ours", folder / "ours", ours, stage_seconds(ours, (*STAGE_1_2, "deblur")))]
+        for name, config in arms:
+            metrics = arm(folder / "ours", folder / name, Path(config))
+            runs.append((name, folder / name, metrics,
+                         stage_seconds(ours, STAGE_1_2) + stage_seconds(metrics, ("deblur",))))
+        if not args.no_paper:
+            paper = reconstruct(sequence, folder / "paper", "paper")
+            runs.append(("paper", folder / "paper", paper, stage_seconds(paper, (*STAGE_1_2, "deblur"))))
+        for name, run, metrics, seconds in runs:
+            rows.append(row(sequence, name, metrics, seconds))
+            grids.append(run / "report" / "test_views.png")
+        print(table(rows[-len(runs):]), flush=True)
+    print("\n" + table(rows))
+    print("\ngrids (input | ours | centre frame | depth):\n" + "\n".join(f"- {g}" for g in grids))
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    if args.peers:
+        subprocess.run([sys.executable, str(ROOT / "bench" / "pose.py"), "--methods", args.peers,
+                        "--out", str(args.out / "peers"),
+                        *[a for s in args.sequences for a in ("--sequence", str(s))]], cwd=ROOT, check=True)
+
+
+if __name__ == "__main__":
+    main()
