@@ -14,6 +14,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
@@ -27,6 +28,8 @@ START_COLOUR = (40, 170, 60)  # stage 3: exposure start
 END_COLOUR = (210, 50, 50)  # stage 3: exposure end
 TRAJECTORY_COLOUR = (30, 30, 30)
 POINT_SIZE_SHARE = 0.004  # stage 1's points: this share of the scene's extent
+FRUSTUM_SHARE = 0.02  # a camera's frustum: this share of the scene's extent deep
+THUMBNAIL_WIDTH = 96  # the input frame drawn on its frustum, pixels
 
 
 def import_viser() -> Any:
@@ -75,6 +78,7 @@ class RunViewer:
         self._lock = threading.RLock()
         self._nodes: list[Any] = []
         self._frustums: list[Any] = []
+        self._thumbs: list[np.ndarray] | None = None
         self._shown: tuple[str, int] | None = None
         self.stage_name = ""
         self._build_gui()
@@ -142,25 +146,34 @@ class RunViewer:
             points, colours = view.points
             self._nodes.append(scene.add_point_cloud(f"/{view.name}/points", points, colours,
                                                      point_size=POINT_SIZE_SHARE * extent))
-        up = -np.median(view.poses[:, :3, 1], axis=0)  # cameras' image up (OpenCV: -y)
-        scene.set_up_direction(up / max(float(np.linalg.norm(up)), 1e-9))
-        first, look_at = view.poses[0], np.median(centres, axis=0) if len(centres) else view.poses[0, :3, 3]
-        self.server.initial_camera.look_at = look_at
-        self.server.initial_camera.position = first[:3, 3] - first[:3, 2] * 0.4 * extent + up * 0.2 * extent
+        self._place_camera(view, centres)
         return extent
 
+    def _place_camera(self, view: StageView, centres: np.ndarray) -> None:
+        """Up is the cameras' image up; a new page (and Reset View) looks through the first camera, from a little
+        behind it, at the scene's median depth: how the capture began."""
+        up = -np.median(view.poses[:, :3, 1], axis=0)  # OpenCV cameras: -y
+        self.server.scene.set_up_direction(up / max(float(np.linalg.norm(up)), 1e-9))
+        first, forward = view.poses[0, :3, 3], view.poses[0, :3, 2]
+        depths = (centres - first) @ forward
+        depth = float(np.median(depths[depths > 0])) if np.any(depths > 0) else 1.0
+        self.server.initial_camera.position = first - 0.2 * depth * forward
+        self.server.initial_camera.look_at = first + depth * forward
+
     def _add_cameras(self, view: StageView, extent: float) -> None:
+        """The trajectory, each camera's frustum (its input on it; clickable) and, in stage 3, its exposure's
+        start and end."""
         scene, intr = self.server.scene, self.scene.sequence.intrinsics
         fov, aspect = 2.0 * math.atan(intr.height / (2.0 * intr.fy)), intr.width / intr.height
-        size = 0.03 * extent
+        size = FRUSTUM_SHARE * extent
         centres = view.poses[:, :3, 3]
         self._nodes.append(scene.add_line_segments(
             f"/{view.name}/trajectory", np.stack([centres[:-1], centres[1:]], axis=1), TRAJECTORY_COLOUR,
-            thickness=0.15 * size))
-        for i, pose in enumerate(view.poses):
+            thickness=2.0, thickness_units="screen"))
+        for i, (pose, thumbnail) in enumerate(zip(view.poses, self._thumbnails())):
             frustum = scene.add_camera_frustum(f"/{view.name}/cameras/{i:05d}", fov, aspect, scale=size,
-                                               thickness=0.05 * size, color=MID_COLOUR, variant="filled",
-                                               wxyz=rotmat_to_quat(pose[:3, :3]), position=pose[:3, 3])
+                                               thickness=2.0, thickness_units="screen", color=MID_COLOUR,
+                                               image=thumbnail, wxyz=rotmat_to_quat(pose[:3, :3]), position=pose[:3, 3])
             frustum.on_click(lambda _, frame=i: self.show_camera(frame))
             self._frustums.append(frustum)
             self._nodes.append(frustum)
@@ -169,8 +182,19 @@ class RunViewer:
             for end, colour in zip(("start", "end"), (START_COLOUR, END_COLOUR)):
                 at = view.exposures[i, 0 if end == "start" else 1]
                 self._nodes.append(scene.add_camera_frustum(
-                    f"/{view.name}/exposure/{i:05d}/{end}", fov, aspect, scale=0.6 * size, thickness=0.03 * size,
-                    color=colour, wxyz=rotmat_to_quat(at[:3, :3]), position=at[:3, 3]))
+                    f"/{view.name}/exposure/{i:05d}/{end}", fov, aspect, scale=0.6 * size, thickness=1.5,
+                    thickness_units="screen", color=colour, wxyz=rotmat_to_quat(at[:3, :3]), position=at[:3, 3]))
+
+    def _thumbnails(self) -> list[np.ndarray]:
+        """Each input frame, at most THUMBNAIL_WIDTH pixels wide, read once."""
+        if self._thumbs is None:
+            self._thumbs = []
+            for i in range(len(self.scene.sequence)):
+                image = self.scene.input_image(i)
+                scale = min(1.0, THUMBNAIL_WIDTH / image.shape[1])
+                size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+                self._thumbs.append(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
+        return self._thumbs
 
     def show_camera(self, frame: int) -> None:
         """Show frame ``frame``'s blurred input beside the shown stage's render, and mark its frustum."""
