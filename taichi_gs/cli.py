@@ -526,7 +526,7 @@ def view(
     port: Annotated[int, typer.Option(min=0, max=65535, help="Port to serve on (0: any free port).")] = 8080,
 ) -> None:
     """Look around a run in the browser: splats, cameras with their exposures, trajectory, a stage switch; a
-    camera click shows its blurred input beside the sharp render. Needs pip install 'taichi-gs[viewer]'."""
+    camera click shows its blurred input beside the sharp render. Needs pip install 'taichi-gs\\[viewer]'."""
     import time
 
     from .viewer.app import serve
