@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import rotmat_to_quat
-from .run_scene import RunScene, StageView, gaussian_arrays
+from .run_scene import RunScene, StageView, gaussian_arrays, open_run
 
 NO_CAMERA = "none"
 MID_COLOUR = (40, 90, 200)  # a camera's frustum (stage 3: at mid-exposure)
@@ -212,8 +212,7 @@ class RunViewer:
             self.image.image = np.concatenate(panels, axis=1)
             self.caption.visible = self.image.visible = True
             for i, frustum in enumerate(self._frustums):
-                if self._shown is None or i in (frame, self._shown[1]):
-                    frustum.color = SELECTED_COLOUR if i == frame else MID_COLOUR
+                frustum.color = SELECTED_COLOUR if i == frame else MID_COLOUR  # unchanged colours are not sent
             self._shown = (view.name, frame)
             self.camera_menu.value = name
 
@@ -226,7 +225,5 @@ class RunViewer:
 
 def serve(run_dir: Path, host: str, port: int, arch: str = "auto") -> RunViewer:
     """Open ``run_dir`` and start its viewer (the server runs on its own threads until ``stop()``)."""
-    from .run_scene import open_run
-
     import_viser()  # before reading the run: the missing extra is the first thing to fix
     return RunViewer(open_run(run_dir), host, port, arch)
