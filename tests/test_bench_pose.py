@@ -1,10 +1,11 @@
 """bench/pose.py: a jump of the reference scores as a break, the ATE between breaks aligns the stretches on
 either side of it separately, a variant that changes only the graph starts from the pairs already computed, the
 rotation error two independent estimates share against the reference is told from their own, and the oracle
-chains each pair's candidate nearest the reference."""
+chains each pair's candidate nearest the reference; its ``paper`` and ``method`` rows run the ``paper`` preset."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -21,6 +22,7 @@ from pose import (OURS, pair_scores, reference_breaks, reference_relatives, run_
 
 from taichi_gs.evaluate import ate  # noqa: E402
 from taichi_gs.io.sequence import load_sequence  # noqa: E402
+from taichi_gs.stages.pose_config import PRESETS  # noqa: E402
 
 
 def _walk(n: int) -> np.ndarray:
@@ -81,6 +83,14 @@ def test_a_variant_that_changes_only_the_graph_starts_from_the_earlier_pairs(tmp
         assert seconds == 1.5  # the pairs' own seconds and the graph's
     ours_pairs = [f"{bench_pose.POSE_PRESETS['fast'].pair_key()}.json"]
     assert found == [[], ours_pairs, [], ours_pairs]  # the flow-check variant changes the pairs: its own cache
+
+
+def test_the_paper_rows_run_the_paper_preset():
+    assert OURS["paper"] == PRESETS["paper"]
+    assert OURS["ours"] == PRESETS["fast"]
+    # method: the paper preset with ICP capped for a benchmark's cost, nothing else changed
+    assert dataclasses.replace(OURS["method"], icp_max_points=0) == PRESETS["paper"]
+    assert OURS["method"].icp_max_points > 0
 
 
 def _measured(sequence: str, method: str, ate_mm: float, *, synthetic: bool = True, width: int = 320,
