@@ -114,6 +114,23 @@ def test_gaussian_arrays_are_the_covariance_colour_and_opacity():
     np.testing.assert_allclose(opacities, [[0.5]])
 
 
+def test_frustum_segments_reach_the_image_corners():
+    from taichi_gs.viewer.app import frustum_segments
+
+    intr = SynthConfig(width=64, height=48)  # fx = fy; the principal point at the image centre
+    fy = 0.5 * intr.width / np.tan(np.radians(intr.fov_deg) / 2)
+    pose = g.pose_from_rt(g.so3_exp(np.array([0.1, -0.4, 0.2])), np.array([1.0, 2.0, -0.5]))
+    segments = frustum_segments(pose[None], 2 * np.arctan(intr.height / 2 / fy), intr.width / intr.height, 0.3)
+    assert segments.shape == (8, 2, 3)
+    np.testing.assert_allclose(segments[:4, 0], np.tile(pose[:3, 3], (4, 1)))  # from the camera centre
+    camera = g.transform(g.invert(pose), segments[:4, 1])
+    np.testing.assert_allclose(camera[:, 2], 0.3)
+    pixels = camera[:, :2] / camera[:, 2:] * fy + [intr.width / 2, intr.height / 2]
+    np.testing.assert_allclose(pixels, [[0, 0], [64, 0], [64, 48], [0, 48]], atol=1e-9)  # the image's corners
+    np.testing.assert_allclose(segments[4:, 0], segments[:4, 1])  # then its edges
+    np.testing.assert_allclose(segments[4:, 1], np.roll(segments[:4, 1], -1, axis=0))
+
+
 def test_view_of_a_folder_that_is_no_run_fails_with_one_line(tmp_path):
     pytest.importorskip("viser")
     result = runner.invoke(app, ["view", str(tmp_path), "--port", "0"])
@@ -169,7 +186,7 @@ def viewer(run_folder):
 def test_the_scene_is_built_from_the_run(viewer):
     assert viewer.stage_name == "deblur" and viewer.port > 0 and viewer.url == f"http://127.0.0.1:{viewer.port}"
     assert len(viewer._frustums) == FRAMES
-    assert len(viewer._nodes) == 1 + 1 + FRAMES * 3  # splats, trajectory, a frustum and its exposure's two ends
+    assert len(viewer._nodes) == 1 + 1 + FRAMES + 1  # splats, trajectory, a frustum per camera, the exposures
     assert f"Gaussians: {DEBLUR_GAUSSIANS}" in viewer.counts.content and "exposures" in viewer.counts.content
     assert viewer.stage_menu.options == ("pose", "refine", "deblur")
     assert not viewer.image.visible

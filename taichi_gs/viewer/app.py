@@ -55,6 +55,21 @@ def check_address(host: str, port: int) -> None:
                          "give another --port, or a --host of this machine (127.0.0.1: this machine only)") from None
 
 
+def frustum_segments(poses: np.ndarray, fov: float, aspect: float, depth: float) -> np.ndarray:
+    """Wireframe frustums of camera-to-world ``poses`` (N, 4, 4; OpenCV axes) with vertical field of view ``fov``
+    (radians) and width / height ``aspect``, ``depth`` deep: (8 N, 2, 3) line segments, apex to each image corner
+    and the image's four edges."""
+    half_h = depth * math.tan(fov / 2.0)
+    half_w = half_h * aspect
+    corners = np.array([[-half_w, -half_h, depth], [half_w, -half_h, depth], [half_w, half_h, depth],
+                        [-half_w, half_h, depth]])
+    world = corners @ poses[:, :3, :3].swapaxes(-1, -2) + poses[:, None, :3, 3]  # (N, 4, 3)
+    apex = np.broadcast_to(poses[:, None, :3, 3], world.shape)
+    rays = np.stack([apex, world], axis=2)
+    edges = np.stack([world, np.roll(world, -1, axis=1)], axis=2)
+    return np.concatenate([rays, edges], axis=1).reshape(-1, 2, 3)
+
+
 def _quiet() -> contextlib.AbstractContextManager:
     """Keep viser's own banner and stop notice off stdout (the command prints the URL itself)."""
     return contextlib.redirect_stdout(io.StringIO())
@@ -177,13 +192,13 @@ class RunViewer:
             frustum.on_click(lambda _, frame=i: self.show_camera(frame))
             self._frustums.append(frustum)
             self._nodes.append(frustum)
-            if view.exposures is None:
-                continue
-            for end, colour in zip(("start", "end"), (START_COLOUR, END_COLOUR)):
-                at = view.exposures[i, 0 if end == "start" else 1]
-                self._nodes.append(scene.add_camera_frustum(
-                    f"/{view.name}/exposure/{i:05d}/{end}", fov, aspect, scale=0.6 * size, thickness=1.5,
-                    thickness_units="screen", color=colour, wxyz=rotmat_to_quat(at[:3, :3]), position=at[:3, 3]))
+        if view.exposures is not None:  # every start and end frustum in one node: one message, however many frames
+            segments = [frustum_segments(view.exposures[:, end], fov, aspect, 0.6 * size) for end in (0, 1)]
+            colours = [np.broadcast_to(np.array(colour, np.uint8), part.shape) for part, colour
+                       in zip(segments, (START_COLOUR, END_COLOUR))]
+            self._nodes.append(scene.add_line_segments(f"/{view.name}/exposures", np.concatenate(segments),
+                                                       np.concatenate(colours), thickness=1.5,
+                                                       thickness_units="screen"))
 
     def _thumbnails(self) -> list[np.ndarray]:
         """Each input frame, at most THUMBNAIL_WIDTH pixels wide, read once."""
