@@ -122,7 +122,8 @@ def test_replace_block_refuses_missing_reversed_or_doubled_markers(text):
 def test_every_table_is_listed_with_its_command_and_fills_its_placeholders():
     for table in results.TABLES.values():
         shown = results.shown(table)
-        assert "{" not in shown and "WORK" in shown or "raster" in table.name
+        assert "{" not in shown
+        assert "WORK" in shown or table.name.startswith("raster")  # the rasterizer bench keeps no run folders
         values = {"python": "py", "work": "/w", "seven_scenes": "/7s", **{n: "/x" for n in table.needs}}
         for command in table.commands:
             assert not any("{" in arg for arg in results.fill(command, values))
