@@ -296,9 +296,11 @@ def test_the_page_in_headless_chromium(viewer, tmp_path):
             page.get_by_text(f"Gaussians: {DEBLUR_GAUSSIANS}").wait_for(timeout=30_000)  # the page loaded the run
             assert _wait_for(lambda: DEBLUR_GAUSSIANS in _gaussians_received(frames)), _gaussians_received(frames)
             assert _wait_for(lambda: len(viewer.server.get_clients()) == 1)
-            time.sleep(2.0)  # software WebGL: let the splats sort and draw
             canvas = max(page.locator("canvas").all(), key=lambda c: (c.bounding_box() or {"width": 0})["width"])
-            overview = canvas.screenshot(path=str(tmp_path / "overview.png"))
+            shots: list[bytes] = []  # software WebGL fades the splats in over a few frames: until they are drawn
+            assert _wait_for(lambda: _drawn_share(shots.append(canvas.screenshot()) or shots[-1]) > 0.1, 30.0), \
+                _drawn_share(shots[-1])
+            (tmp_path / "overview.png").write_bytes(shots[-1])
 
             # A click on the last camera's frustum (the cameras move forwards): the browser's camera is put in front
             # of it, looking back at its image plane, which lies ahead of every other frustum.
@@ -331,7 +333,6 @@ def test_the_page_in_headless_chromium(viewer, tmp_path):
     if os.environ.get("TAICHI_GS_VIEWER_SHOTS"):  # to look at them
         for name in ("overview.png", "clicked.png", "chosen.png"):
             shutil.copyfile(tmp_path / name, Path(os.environ["TAICHI_GS_VIEWER_SHOTS"]) / name)
-    assert _drawn_share(overview) > 0.1
 
 
 def _drawn_share(png: bytes) -> float:

@@ -88,7 +88,9 @@ class RunViewer:
         if port and self.server.get_port() != port:  # taken between the check and the bind
             self.stop()
             raise InputError(None, f"port {port} is in use", "give another --port")
-        self.server.gui.configure_theme(show_share_button=False)  # a share link would route the scene through viser's relay
+        self.server.gui.configure_theme(dark_mode=True, show_share_button=False)  # no link through viser's relay
+        # black behind the splats, as the stages render and train them: what their opacities leave shows as black
+        self.server.scene.set_background_image(np.zeros((1, 1, 3), dtype=np.uint8), format="png")
         self.host, self.port = host, self.server.get_port()
         self._lock = threading.RLock()
         self._nodes: list[Any] = []
