@@ -173,6 +173,13 @@ def test_view_refuses_a_port_in_use(run_folder):
     assert f"127.0.0.1:{port}" in result.output and "--port" in result.output
 
 
+def test_view_refuses_a_host_of_another_machine(run_folder):
+    pytest.importorskip("viser")
+    result = runner.invoke(app, ["view", str(run_folder), "--host", "203.0.113.7", "--port", "0"])  # TEST-NET-3
+    assert result.exit_code == 2, result.output
+    assert "cannot serve on 203.0.113.7:0" in result.output and "--host" in result.output
+
+
 @pytest.fixture
 def viewer(run_folder):
     pytest.importorskip("viser")
