@@ -15,8 +15,10 @@ those stage-1 peers on the same folders (its own table, printed after ours).
 
 Prints one Markdown table, a row per sequence and method: W, size, frames, the median streak of the exposures
 (blur.json, pixels), ATE after stage 1 and of the final (stage-3 mid-exposure) trajectory (mm), held-out PSNR / SSIM
-of the sharp renders against the centre frames, the blurred input's against the same frames, the gain, and the
-run's wall seconds per frame. The grids to judge by eye are each run's report/test_views.png (input | ours | centre
+of the sharp renders against the centre frames, the blurred input's against the same frames, the gain, two
+registration figures (held-out means: the render as the rolling shutter reads it against the centre frame, which
+was read so; the render moved by its best sub-pixel translation onto the centre frame, inside an 8 px border, with
+the shift's length), and the run's wall seconds per frame. The grids to judge by eye are each run's report/test_views.png (input | ours | centre
 frame | depth), listed after the table. ``--json OUT`` writes the rows.
 """
 
@@ -30,9 +32,16 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
+
+from taichi_gs.evaluate import psnr
+from taichi_gs.io.sequence import read_color
+
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "taichi_gs.cli"]
 STAGE_1_2 = ("pose", "refine")
+BORDER_PX = 8  # the shifted comparison leaves out this border (the shift moves the image edge in)
 
 
 def _run(args: list[str], log: Path) -> None:
@@ -71,6 +80,53 @@ def arm(base: Path, run: Path, config: Path) -> dict[str, Any]:
     return _evaluate(run)
 
 
+def shifted_onto(image: np.ndarray, reference: np.ndarray, inner: tuple[slice, slice],
+                 steps: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` moved by the sub-pixel translation that best matches ``reference`` inside ``inner`` (phase
+    correlation, then Gauss-Newton on the squared grey-level difference), and that translation (dx, dy)."""
+    grey = [cv2.cvtColor(x, cv2.COLOR_RGB2GRAY).astype(np.float64) for x in (image, reference)]
+    (dx, dy), _ = cv2.phaseCorrelate(grey[1], grey[0])
+    shift = np.array([dx, dy])
+
+    def moved(x: np.ndarray, by: np.ndarray) -> np.ndarray:
+        return cv2.warpAffine(x, np.float64([[1, 0, -by[0]], [0, 1, -by[1]]]), x.shape[1::-1],
+                              flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+    for _ in range(steps):
+        current = moved(grey[0], shift)
+        gx, gy = cv2.Sobel(current, cv2.CV_64F, 1, 0, ksize=1) / 2, cv2.Sobel(current, cv2.CV_64F, 0, 1, ksize=1) / 2
+        J = np.stack([gx[inner].ravel(), gy[inner].ravel()], axis=1)  # d moved / d shift: moved(p) = x(p + shift)
+        residual = (current - grey[1])[inner].ravel()
+        shift = shift - np.linalg.solve(J.T @ J + 1e-9 * np.eye(2), J.T @ residual)
+    return moved(image, shift), shift
+
+
+def registration(sequence: Path, run: Path) -> dict[str, float | None]:
+    """Mean over the held-out views of: the sharp render read as the rolling shutter reads it (deblur/renders/as_read/,
+    where the run has one) against the centre frame, and the render moved by its best sub-pixel translation onto
+    the centre frame (phase correlation) against it inside a BORDER_PX border, with that shift's length (pixels):
+    how much of the gap to the centre frame is where the render sits rather than what it shows."""
+    split_path = run / "deblur" / "split.json"
+    if not (sequence / "sharp").is_dir() or not split_path.is_file():
+        return {"as_read_psnr_db": None, "shifted_psnr_db": None, "shift_px": None}
+    names = [line.split()[1].split("/", 1)[1].rsplit(".", 1)[0]
+             for line in (sequence / "frames.txt").read_text().splitlines() if line and line[0] != "#"]
+    inner = (slice(BORDER_PX, -BORDER_PX), slice(BORDER_PX, -BORDER_PX))
+    as_read, shifted, shifts = [], [], []
+    for i in json.loads(split_path.read_text())["test"]:
+        sharp = read_color(sequence / "sharp" / f"{names[i]}.png")
+        render = read_color(run / "deblur" / "renders" / "sharp" / f"{names[i]}.png")
+        read = run / "deblur" / "renders" / "as_read" / f"{names[i]}.png"
+        as_read.append(psnr(read_color(read) if read.is_file() else render, sharp))
+        moved, shift = shifted_onto(render, sharp, inner)
+        shifted.append(psnr(moved[inner], sharp[inner]))
+        shifts.append(float(np.hypot(*shift)))
+    if not shifts:
+        return {"as_read_psnr_db": None, "shifted_psnr_db": None, "shift_px": None}
+    return {"as_read_psnr_db": float(np.mean(as_read)), "shifted_psnr_db": float(np.mean(shifted)),
+            "shift_px": float(np.mean(shifts))}
+
+
 def sequence_facts(sequence: Path) -> dict[str, Any]:
     """W, image size, frame count and median streak (pixels) of an averaged sequence folder."""
     intrinsics = json.loads((sequence / "intrinsics.json").read_text())
@@ -82,7 +138,7 @@ def sequence_facts(sequence: Path) -> dict[str, Any]:
             "frames": len(frames), "streak_px": streaks[len(streaks) // 2] if streaks else None}
 
 
-def row(sequence: Path, method: str, metrics: dict[str, Any], seconds: float) -> dict[str, Any]:
+def row(sequence: Path, run: Path, method: str, metrics: dict[str, Any], seconds: float) -> dict[str, Any]:
     """One table row from a run's metrics."""
     trajectory, test = metrics.get("trajectory") or {}, (metrics.get("images") or {}).get("test") or {}
     facts = sequence_facts(sequence)
@@ -91,7 +147,7 @@ def row(sequence: Path, method: str, metrics: dict[str, Any], seconds: float) ->
             "stage1_ate_mm": _mm((trajectory.get("pose") or {}).get("ate_m")), "final_ate_mm": _mm(final.get("ate_m")),
             "psnr_db": test.get("psnr_db"), "ssim": test.get("ssim"),
             "input_psnr_db": test.get("blurred_input_psnr_db"), "input_ssim": test.get("blurred_input_ssim"),
-            "seconds_per_frame": seconds / facts["frames"]}
+            "seconds_per_frame": seconds / facts["frames"], **registration(sequence, run)}
 
 
 def _mm(metres: float | None) -> float | None:
@@ -110,8 +166,8 @@ def _cell(value: float | None, digits: int) -> str:
 def table(rows: list[dict[str, Any]]) -> str:
     """The Markdown table of ``rows``."""
     lines = ["| sequence | W | size | frames | streak px | method | stage-1 ATE mm | final ATE mm | held-out PSNR / SSIM "
-             "| input PSNR / SSIM | gain dB / SSIM | s / frame |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| input PSNR / SSIM | gain dB / SSIM | as read dB | shifted dB (px) | s / frame |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         gain = (None, None) if r["psnr_db"] is None or r["input_psnr_db"] is None else \
             (r["psnr_db"] - r["input_psnr_db"], r["ssim"] - r["input_ssim"])
@@ -119,7 +175,8 @@ def table(rows: list[dict[str, Any]]) -> str:
                      f"{_cell(r['streak_px'], 1)} | {r['method']} | {_cell(r['stage1_ate_mm'], 1)} | "
                      f"{_cell(r['final_ate_mm'], 1)} | {_cell(r['psnr_db'], 2)} / {_cell(r['ssim'], 3)} | "
                      f"{_cell(r['input_psnr_db'], 2)} / {_cell(r['input_ssim'], 3)} | "
-                     f"{_cell(gain[0], 2)} / {_cell(gain[1], 3)} | {_cell(r['seconds_per_frame'], 1)} |")
+                     f"{_cell(gain[0], 2)} / {_cell(gain[1], 3)} | {_cell(r['as_read_psnr_db'], 2)} | "
+                     f"{_cell(r['shifted_psnr_db'], 2)} ({_cell(r['shift_px'], 2)}) | {_cell(r['seconds_per_frame'], 1)} |")
     return "\n".join(lines)
 
 
@@ -150,7 +207,7 @@ def main() -> None:
             paper = reconstruct(sequence, folder / "paper", "paper")
             runs.append(("paper", folder / "paper", paper, stage_seconds(paper, (*STAGE_1_2, "deblur"))))
         for name, run, metrics, seconds in runs:
-            rows.append(row(sequence, name, metrics, seconds))
+            rows.append(row(sequence, run, name, metrics, seconds))
             grids.append(run / "report" / "test_views.png")
         print(table(rows[-len(runs):]), flush=True)
     print("\n" + table(rows))
