@@ -15,7 +15,7 @@ from typer.core import TyperGroup
 from .terminal import Verbosity, console
 
 # Listed first, in this order (the rest follow in definition order): the everyday path first.
-COMMAND_ORDER = ("reconstruct", "eval", "export", "render", "pose", "refine", "deblur", "import", "synth", "info")
+COMMAND_ORDER = ("reconstruct", "eval", "view", "export", "render", "pose", "refine", "deblur", "import", "synth", "info")
 
 
 class _State:
