@@ -260,8 +260,8 @@ PRESETS = {
                          # [ours] exposures start open for 0.7 of the motion to the neighbours, not 0.5: extreme blur
                          # keeps the shutter open for most of the frame interval (averaged real frames 0.62-0.88,
                          # synth's extreme blur 1.0), and 0.7 starts nearer the truth than 0.5 on every kind measured.
-                         # Held-out PSNR +0.23 dB on the sample, +0.15 dB on a 16-frame real averaged slice
-                         # (docs/notebook/real-blur-stage3.md, "The exposure's start and end")
+                         # Held-out PSNR +0.23 dB on the sample, +0.15 and +1.33 dB on 16-frame averaged 7-Scenes and TUM
+                         # slices (docs/notebook/real-blur-stage3.md, "Trained: the method's 0.5 against 0.8 and 0.7")
                          initial_exposure_fraction=0.7,
                          # [ours] Kinect v1's rolling shutter where the reading names one (TUM fr1, 7-Scenes): held-out
                          # re-blur +2.3 dB on two TUM stretches, +0.16 to +0.30 dB on two 7-Scenes slices, at 1.11x the
