@@ -104,6 +104,15 @@ def test_sample_reads_the_run_folders_metrics(tmp_path):
     assert table.splitlines()[2] == "| 100 | 5.7 / 0.1 / 92.2 | 30.84 / 0.926 | 23.82 / 0.517 | 0.41 / 0.41 / 0.53 | cpu |"
 
 
+def test_real_blur_keeps_the_last_complete_table_and_drops_the_grid_list():
+    partial = "| sequence | W |\n|---|---|\n| a | 3 |\n"
+    output = f"{partial}\n{partial}| b | 5 |\n\ngrids (input | ours | centre frame | depth):\n- a.png\n"
+    table = results.real_blur([results.Run(output, 1.0)], Path("."))
+    assert table == "| sequence | W |\n|---|---|\n| a | 3 |\n| b | 5 |"
+    with pytest.raises(SystemExit):
+        results.real_blur([results.Run("no table", 1.0)], Path("."))
+
+
 def test_replace_block_keeps_everything_outside_the_markers():
     text = "# B\n\n## T\nWhat it measures.\n<!-- results:t -->\nold\ntable\n<!-- /results:t -->\nReading.\n"
     new = results.replace_block(text, "t", "Measured today.\n\n| a |\n|---|\n| 1 |\n")
