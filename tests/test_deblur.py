@@ -14,9 +14,8 @@ from taichi_gs.evaluate import psnr, ssim
 from taichi_gs.geometry import backproject, invert, project, se3_exp, se3_log, transform, virtual_pose
 from taichi_gs.io.ply import read_splats
 from taichi_gs.io.trajectory import read_tum, read_tum_rows, tum_rows_to_poses
-from taichi_gs.stages.deblur import (
-    PRESETS, exposure_px, initial_offsets, keep_open, load_stage2, run_deblur, split_frames,
-)
+from taichi_gs.stages.deblur import PRESETS, load_stage2, run_deblur, split_frames
+from taichi_gs.stages.exposures import exposure_px, initial_offsets, keep_open
 
 synth = pytest.importorskip("taichi_gs.synth")
 

@@ -25,7 +25,7 @@ import numpy as np
 from ..deblur_model import BlurScene, FrozenAnchors, Rates, anchor_count, warped_views
 from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
-from ..geometry import invert, median_depths, se3_log, virtual_pose
+from ..geometry import median_depths, virtual_pose
 from ..io.atomic import write_text
 from ..io import jsonout
 from ..io.ply import read_splats, write_splats
@@ -42,6 +42,7 @@ from .deblur_config import PRESETS, DeblurConfig, scaled_schedule, with_headroom
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .divergence import DivergenceGuard
 from .gauge import FrameShift, back_to_stage_2s_frame
+from .exposures import Exposures, colour_step, exposure_px, keep_open, shrink_mid
 from .row_adam import RowAdam
 from .rprop import Rprop
 from .schedule import downsample_depth, exp_decay, scaled_intrinsics, training_scale, views_for_span
@@ -125,43 +126,6 @@ def with_sh_degree(splats: Splats, degree: int) -> Splats:
     keep = min(m, splats.sh.shape[1])
     sh[:, :keep] = splats.sh[:, :keep]
     return dataclasses.replace(splats, sh=sh)
-
-
-def initial_offsets(poses: np.ndarray, fraction: float) -> np.ndarray:
-    """(N, 2, 6) start/end offsets: -+ half of ``fraction`` of each frame's velocity twist (the
-    mean of the motions to its neighbours, in its own frame), so every exposure starts open."""
-    n = len(poses)
-    offsets = np.zeros((n, 2, 6))
-    for i in range(n):
-        ahead = se3_log(invert(poses[i]) @ poses[i + 1]) if i + 1 < n else None
-        behind = -se3_log(invert(poses[i]) @ poses[i - 1]) if i > 0 else None
-        steps = [s for s in (ahead, behind) if s is not None]
-        velocity = np.mean(steps, axis=0) if steps else np.zeros(6)
-        offsets[i] = [-0.5 * fraction * velocity, 0.5 * fraction * velocity]
-    return offsets
-
-
-def exposure_px(d_start: np.ndarray, d_end: np.ndarray, focal: float, depth: float) -> float:
-    """Approximate image travel (pixels) over an exposure for points at ``depth``."""
-    delta = np.asarray(d_end) - np.asarray(d_start)
-    return float(focal * (np.linalg.norm(delta[:3]) / depth + np.linalg.norm(delta[3:])))
-
-
-def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, depth: float) -> np.ndarray:
-    """Re-open an exposure that closed below ``min_px`` on the image: stretch d_e - d_s about its
-    middle (or, if it vanished, take ``fallback``'s direction) to ``min_px``."""
-    span = exposure_px(d[0], d[1], focal, depth)
-    if span >= min_px:
-        return d
-    middle = 0.5 * (d[0] + d[1])
-    half = 0.5 * (d[1] - d[0]) if span > 1e-3 * min_px else 0.5 * (fallback[1] - fallback[0])
-    scale = min_px / max(exposure_px(-half, half, focal, depth), 1e-12)
-    return np.stack([middle - scale * half, middle + scale * half])
-
-
-def shrink_mid(d: np.ndarray, decay: float) -> np.ndarray:
-    """Exposure offsets (start, end) whose mid offset (their mean) shrank by the share ``decay``, span unchanged."""
-    return d - decay * d.mean(axis=0) if decay > 0 else d
 
 
 def _downsample_color(color: np.ndarray, scale: int) -> np.ndarray:
@@ -253,22 +217,16 @@ def run_deblur(
         model.density.split_oversized(model.store, limit, config.max_gaussians, np.random.default_rng([config.seed, 1]))
     if config.spatial_order:
         model.order_in_space()
-    start = initial_offsets(poses, config.initial_exposure_fraction)
-    offsets = start.copy()
-    exposure_adam = RowAdam(len(sequence), (2, 6))
-    colours = np.repeat(IDENTITY[None], len(sequence), axis=0)
-    colour_adam = RowAdam(len(sequence), (3, 4))
+    exposures = Exposures(poses, config)
     rng = np.random.default_rng(config.seed)
     history: list[dict[str, float]] = []
     first = 0
 
     checkpoint_path = stage_dir / "checkpoint.npz"
     saved = checkpoint.load(checkpoint_path, config)
-    if saved is not None and saved.arrays["offsets"].shape == offsets.shape:
+    if saved is not None and exposures.matches(saved.arrays):
         first, history = saved.iteration, saved.records["history"]
-        offsets, colours = saved.arrays["offsets"].copy(), saved.arrays["colours"].copy()
-        exposure_adam.load_state(saved.arrays, "exposure")
-        colour_adam.load_state(saved.arrays, "colour")
+        exposures.load_state(saved.arrays)
         model.load_state(saved.prefixed("model"))
         rng.bit_generator.state = saved.records["rng"]
 
@@ -284,39 +242,35 @@ def run_deblur(
         rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
                       quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
                       colors=config.lr_colors)
-        k, anchors = _exposure_sampling(offsets[frame], frames, frame, config, fraction)
+        d = exposures.offsets[frame]
+        k, anchors = _exposure_sampling(d, frames, frame, config, fraction)
         # the density schedule in this phase's pixels (coarse-to-fine changes the training width)
         density = density_schedule(config, extent, model.width, centres, frames.K[0, 0])
-        step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
-                          k, config.lambda_dssim, config.lambda_depth, rates,
-                          colours[frame] if config.colour_affine else None,
+        step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], d[0], d[1],
+                          k, config.lambda_dssim, config.lambda_depth, rates, exposures.colour(frame),
                           anchors=anchors, fallback_depth=frames.median_depth[frame],
                           observe=density.observes(it + 1), readout_motion=shutter.motions[frame])
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
-            updated = exposure_adam.step(frame, offsets[frame], np.stack([step.grad_start, step.grad_end]), lr_exposure)
-            updated = shrink_mid(updated, config.mid_exposure_decay)
-            offsets[frame] = keep_open(updated, start[frame], config.min_open_px, full.K[0, 0], full.median_depth[frame])
-            if config.colour_affine:
-                colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
+            exposures.update(frame, step.grad_start, step.grad_end, step.grad_colour, lr_exposure, full.K[0, 0],
+                             full.median_depth[frame])
         loss = (1 - config.lambda_dssim) * step.losses["l1"] + config.lambda_dssim * step.losses["dssim"] \
             + config.lambda_depth * step.losses["depth"]
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
         also = None
         if config.densify_by != "gradient" and density.densifies(it + 1):
-            also = error_rows(model, frames, train, poses, offsets, colours if config.colour_affine else None,
-                              config, rng)
+            also = error_rows(model, frames, train, exposures, config, rng)
         model.density.step(it + 1, model.store, density, rng, also)
         if config.fill_uncovered and density.densifies(it + 1):
             for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
-                fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
+                fill_uncovered(model, frames.colors[f], frames.depths[f], exposures.mid_pose(f),
                                frames.K, config.fill_stride, config.max_gaussians, rng,
                                min(config.fill_stride, config.split_px or config.fill_stride))
         if config.prune_weight_share > 0 and density.last_densification(it + 1):
-            mids = [virtual_pose(poses[f], *offsets[f], 0.5) for f in train]
-            model.density.drop_lightest(model.store, model.blending_weights(mids), config.prune_weight_share)
+            weights = model.blending_weights(exposures.mid_poses(train))
+            model.density.drop_lightest(model.store, weights, config.prune_weight_share)
         if config.spatial_order and density.densifies(it + 1):
             model.order_in_space()
         if progress is not None:
@@ -324,33 +278,31 @@ def run_deblur(
         if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 \
                 or it == config.iterations - 1:
             params = model.arrays()
-            guard.check_parameters(it, params["means"], offsets, *params.values())
+            guard.check_parameters(it, params["means"], exposures.offsets, *params.values())
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < config.iterations:
             checkpoint.save(checkpoint_path, it + 1, config,
-                            {"offsets": offsets, "colours": colours, **exposure_adam.state("exposure"),
-                             **colour_adam.state("colour"), **checkpoint.prefixed("model", model.state())},
+                            {**exposures.state(), **checkpoint.prefixed("model", model.state())},
                             {"history": history, "rng": rng.bit_generator.state})
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
     frames, model = _phase(sequence, sourced, model, phase, config.resolution_scale)
     for frame in test:
         if config.test_fit_from_neighbours:
-            offsets[frame] = offsets[frame] + neighbours_mid_shift(offsets, train, frame)
-        offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
-                                                               frame, config, shutter.motions[frame])
-    warnings = _step_warnings(offsets, train, frames, config)
+            exposures.start_from_neighbours(frame, train)
+        exposures.offsets[frame], exposures.colours[frame] = _refine_test_exposure(
+            model, frames, poses[frame], exposures.offsets[frame], exposures.start[frame], frame, config,
+            shutter.motions[frame])
+    warnings = _step_warnings(exposures.offsets, train, frames, config)
     splats, shift = model.splats(), None
     if config.keep_frame:
-        splats, poses, offsets, shift = back_to_stage_2s_frame(splats, poses, offsets, train,
-                                                                config.keep_frame_scale_error)
+        splats, exposures.poses, exposures.offsets, shift = back_to_stage_2s_frame(
+            splats, poses, exposures.offsets, train, config.keep_frame_scale_error)
     result = DeblurResult(
-        mid_poses=np.stack([virtual_pose(poses[i], *offsets[i], 0.5) for i in range(len(sequence))]),
-        exposure=np.stack([[virtual_pose(poses[i], *offsets[i], tau) for tau in (0.0, 1.0)] for i in range(len(sequence))]),
+        mid_poses=np.stack(exposures.mid_poses()), exposure=exposures.ends(),
         train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
         warnings=warnings, readout_ms=readout_ms,
     )
-    _write_outputs(stage_dir, sequence, splats, poses, offsets, result, config, sharpness,
-                   colours if config.colour_affine else None, shift, shutter)
+    _write_outputs(stage_dir, sequence, splats, exposures, result, config, sharpness, shift, shutter)
     checkpoint_path.unlink(missing_ok=True)
     return result
 
@@ -451,15 +403,15 @@ def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_t
     return len(v)
 
 
-def error_rows(model: BlurScene, frames: _Frames, train: list[int], poses: np.ndarray, offsets: np.ndarray,
-               colours: np.ndarray | None, config: DeblurConfig, rng: np.random.Generator) -> np.ndarray:
+def error_rows(model: BlurScene, frames: _Frames, train: list[int], exposures: Exposures, config: DeblurConfig,
+               rng: np.random.Generator) -> np.ndarray:
     """[ours] The ``error_densify_share`` of the Gaussians with the most re-blur error mass
     (``BlurScene.error_mass``, summed over ``error_densify_frames`` random training views), most first."""
     mass = np.zeros(model.count)
     for f in rng.choice(train, size=min(config.error_densify_frames, len(train)), replace=False):
-        k = _views(offsets[f], frames.K[0, 0], frames.median_depth[f], config)
-        mass += model.error_mass(frames.colors[f], poses[f], offsets[f, 0], offsets[f, 1], k,
-                                 None if colours is None else colours[f])
+        d = exposures.offsets[f]
+        k = _views(d, frames.K[0, 0], frames.median_depth[f], config)
+        mass += model.error_mass(frames.colors[f], exposures.poses[f], d[0], d[1], k, exposures.colour(f))
     ranked = np.argsort(-mass, kind="stable")[: int(config.error_densify_share * model.count)]
     return ranked[mass[ranked] > 0]
 
@@ -473,12 +425,6 @@ def density_schedule(config: DeblurConfig, extent: float, width: int, centres: n
     return DensitySchedule(config.densify_from, config.densify_until, config.densify_every, threshold,
                            config.split_scale * extent, config.prune_opacity, config.prune_scale * extent,
                            config.max_gaussians, config.reset_opacity_every, config.split_px, centres, focal)
-
-
-def _colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:
-    """One Adam step of a frame's affine colour transform on its loss gradient plus the identity pull."""
-    _, pull = identity_penalty(M, config.lambda_colour_affine)
-    return adam.step(frame, M, grad + pull, config.lr_colour_affine)
 
 
 def _rprop_step(shape: tuple[int, ...], rate: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
@@ -495,7 +441,7 @@ def _test_fit_steps(config: DeblurConfig) -> tuple[Callable[[np.ndarray, np.ndar
         return exposure, lambda M, grad: colour(M, grad + identity_penalty(M, config.lambda_colour_affine)[1])
     exposure_adam, colour_adam = RowAdam(1, (2, 6)), RowAdam(1, (3, 4))
     return (lambda d, grad: exposure_adam.step(0, d, grad, config.lr_test_pose),
-            lambda M, grad: _colour_step(colour_adam, M, grad, 0, config))
+            lambda M, grad: colour_step(colour_adam, M, grad, 0, config))
 
 
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
@@ -522,18 +468,6 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
         if config.colour_affine:
             colour = colour_step(colour, step.grad_colour)
     return d, colour
-
-
-def neighbours_mid_shift(offsets: np.ndarray, train: list[int], frame: int) -> np.ndarray:
-    """[ours] The mean mid-exposure correction, (d_s + d_e) / 2, of the nearest training frame before and
-    after ``frame`` (those there are; zeros without any): where a held-out frame's fit starts its exposure
-    (each correction is in its own frame's coordinates, taken as the held-out frame's: neighbours turn little)."""
-    before = [j for j in train if j < frame]
-    after = [j for j in train if j > frame]
-    nearest = ([max(before)] if before else []) + ([min(after)] if after else [])
-    if not nearest:
-        return np.zeros(6)
-    return np.mean([0.5 * (offsets[j, 0] + offsets[j, 1]) for j in nearest], axis=0)
 
 
 def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, config: DeblurConfig) -> list[str]:
@@ -567,9 +501,9 @@ class _Shutter:
         return min(skew, MAX_SKEW_MARGIN_SCALE * config.warp_px)
 
 
-def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   result: DeblurResult, config: DeblurConfig, sharpness: list[float],
-                   colours: np.ndarray | None, shift: FrameShift | None, shutter: _Shutter) -> None:
+def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, exposures: Exposures, result: DeblurResult,
+                   config: DeblurConfig, sharpness: list[float], shift: FrameShift | None, shutter: _Shutter) -> None:
+    colours = exposures.trained_colours()
     write_splats(stage_dir / "splats.ply", splats)
     if shift is not None:
         write_text(stage_dir / "frame.json", jsonout.dumps(shift.as_dict(), indent=2) + "\n")
@@ -585,7 +519,8 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
         write_text(stage_dir / "colour_affine.json", jsonout.dumps(
             {"rows": "out = M[:, :3] @ rgb + M[:, 3]", "frames": {n: colours[i].round(6).tolist()
                                                                   for i, n in enumerate(sequence.names)}}) + "\n")
-    _write_renders(stage_dir, sequence, splats, poses, offsets, config, result.test, colours, shutter)
+    _write_renders(stage_dir, sequence, splats, exposures.poses, exposures.offsets, config, result.test, colours,
+                   shutter)
     history = result.loss_history
     if history:
         it = np.array([h["iteration"] for h in history], dtype=float)
