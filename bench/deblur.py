@@ -34,7 +34,7 @@ import numpy as np
 
 from taichi_gs import synth
 from taichi_gs.evaluate import inverse_depth_rmse, psnr, ssim
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.stages.deblur import PRESETS, run_deblur, split_frames
 from taichi_gs.standins import write_refine_outputs
 

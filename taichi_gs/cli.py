@@ -308,7 +308,7 @@ def with_readout(config: StageConfig, readout_ms: float | None) -> StageConfig:
 
 def _open_input(folder: Path, fx, fy, cx, cy, depth_scale, format: str | None, camera: str | None, every: int,
                 scale: float, time_tolerance: float | None, trust_depth_scale: bool, first: int, count: int):
-    from .io.sequence import load_sequence
+    from .io.load import load_sequence
 
     return load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale,
                          format=format, camera=camera, every=every, scale=scale, first=first, count=count)

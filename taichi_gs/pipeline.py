@@ -93,7 +93,8 @@ def open_run_sequence(run_dir: Path, gt: Path | None = None) -> Sequence:
     """The input sequence of a run, reopened with the options it was loaded with (format, camera,
     every, scale, intrinsics flags, ...). ``gt`` (another copy of the input, perhaps in another
     layout) replaces the recorded folder; its format and camera are detected afresh."""
-    from .io.sequence import IntrinsicsOverride, load_sequence
+    from .io.load import load_sequence
+    from .io.sequence import IntrinsicsOverride
 
     record = _read_run_info(run_dir) if gt is None or (run_dir / RUN_INFO).is_file() else {}
     options = dict(record.get("load_options") or {})

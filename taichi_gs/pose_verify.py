@@ -29,7 +29,7 @@ import numpy as np
 
 from .geometry import backproject, project, transform
 from .icp import reliable_depth_mask
-from .stages.pose_losses import bilinear, bilinear_depth, nearest_pixel
+from .sampling import bilinear, bilinear_depth, nearest_pixel
 
 
 MEAN_BILINEAR_SQUARES = 4.0 / 9.0  # the mean of sum w^2 over uniform sub-pixel positions: (2/3)^2

@@ -22,7 +22,7 @@ from typer.testing import CliRunner
 from taichi_gs import synth as synth_module
 from taichi_gs.cli import SynthBlur, SynthScene, SynthTrajectory, app
 from taichi_gs.cli_options import COMMAND_ORDER, hoist_global_options
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import write_tum
 from taichi_gs.pipeline import write_run_info
 from taichi_gs.synth import SynthConfig, generate

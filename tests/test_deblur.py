@@ -209,7 +209,7 @@ def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupt
     colour transforms and their moments, the RNG) survives a checkpoint: training continues from the
     checkpoint's iteration, not from 0, and reaches the uninterrupted run's result."""
     from taichi_gs.standins import write_refine_outputs
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
 
     synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=5),
                    tmp_path / "seq")
