@@ -14,23 +14,43 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..deblur_model import BlurScene, BlurStep, FrozenAnchors, Rates, anchor_count, warped_views
+from ..deblur_model import (
+    BlurScene,
+    BlurStep,
+    FrozenAnchors,
+    Rates,
+    anchor_count,
+    warped_views,
+)
 from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
 from ..io.sequence import Sequence
 from ..photometric import IDENTITY, identity_penalty
-from ..rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, readout_skews, stage_readout_ms
+from ..rolling_shutter import (
+    DeskewedSequence,
+    deskewing_motions,
+    readout_motions,
+    stage_readout_ms,
+)
 from ..splats import Splats
 from . import checkpoint
 from .deblur_config import PRESETS, DeblurConfig, scaled_schedule, with_headroom
 from .deblur_density import density_schedule, fill_uncovered
 from .deblur_frames import (
-    _Frames, _load_frames, _phase, _scene_extent, choose_split, load_stage2, loss_mask, training_frame, with_sh_degree,
+    _Frames,
+    _load_frames,
+    _phase,
+    _scene_extent,
+    _Shutter,
+    choose_split,
+    load_stage2,
+    loss_mask,
+    training_frame,
+    with_sh_degree,
 )
 from .deblur_outputs import DeblurResult, _step_warnings, _write_outputs
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
@@ -42,6 +62,7 @@ from .rprop import Rprop
 from .schedule import exp_decay, training_scale, views_for_span
 
 PARAMETER_CHECK_EVERY = 50  # iterations between divergence checks of the parameters (a device copy)
+MAX_SKEW_MARGIN_SCALE = 4.0  # [ours] a rolling shutter widens the anchors' margin by at most this many warp_px
 
 
 def run_deblur(
@@ -68,7 +89,7 @@ def run_deblur(
     config = with_headroom(scaled_schedule(config, len(train)), len(splats))
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
-    shutter = _Shutter(motions, frames.median_depth)
+    shutter = _Shutter(motions, frames.median_depth, MAX_SKEW_MARGIN_SCALE * config.warp_px)
     centres = poses[train, :3, 3]
     model = _initial_model(splats, frames, centres, shutter, config)
     exposures = Exposures(poses, config)
@@ -143,7 +164,7 @@ def _initial_model(splats: Splats, frames: _Frames, centres: np.ndarray, shutter
     the nearest training camera (``centres``) split, with ``spatial_order`` in Morton order."""
     height, width = frames.colors[0].shape[:2]
     model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced,
-                      warp_margin=warp_margin(config, shutter.skew_px(frames.K[0, 0], config)))
+                      warp_margin=warp_margin(config, shutter.skew_px(frames.K[0, 0])))
     if config.init_max_px > 0:
         limit = footprint_limit(model.arrays()["means"], centres, frames.K[0, 0], config.init_max_px)
         model.density.split_oversized(model.store, limit, config.max_gaussians, np.random.default_rng([config.seed, 1]))
@@ -224,8 +245,6 @@ def _exposure_sampling(d: np.ndarray, frames: _Frames, frame: int, config: Deblu
     return k, anchors
 
 
-MAX_SKEW_MARGIN_SCALE = 4.0  # [ours] a rolling shutter widens the anchors' margin by at most this many warp_px
-
 
 def warp_margin(config: DeblurConfig, shutter_px: float = 0.0) -> int:
     """[ours] Pixels added on each side of an anchor render (0 without ``warp_views``); ``shutter_px`` more
@@ -296,23 +315,6 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
         if config.colour_affine:
             colour = colour_fit(colour, step.grad_colour)
     return d, colour
-
-
-@dataclass(frozen=True)
-class _Shutter:
-    """[ours] Each frame's rolling-shutter readout motion (N, 6; zeros: a global shutter) and its median sensor
-    depth (N,): where the skew is measured, and where a re-blurred render's rows are warped from a surface-less
-    pixel."""
-
-    motions: np.ndarray
-    median_depth: np.ndarray
-
-    def skew_px(self, focal: float, config: DeblurConfig) -> float:
-        """The most any frame's first or last row lies from its pose on the image (:func:`readout_px`, pixels at
-        focal ``focal``), at most ``MAX_SKEW_MARGIN_SCALE`` x ``warp_px``: a pose jump between neighbours must not
-        blow up the anchors' margin."""
-        skew = float(readout_skews(self.motions, focal, self.median_depth).max())
-        return min(skew, MAX_SKEW_MARGIN_SCALE * config.warp_px)
 
 
 def _run_stage(context: StageContext) -> StageRun:

@@ -17,7 +17,7 @@ from ..io.ply import read_splats
 from ..io.sequence import SOURCED, Sequence
 from ..io.trajectory import check_frame_times, read_tum
 from ..noreference import laplacian_variance, sharpest_holdout
-from ..rolling_shutter import DeskewedSequence
+from ..rolling_shutter import DeskewedSequence, readout_skews
 from ..splats import Splats
 from .deblur_config import DeblurConfig
 from .schedule import downsample_depth, scaled_intrinsics
@@ -150,3 +150,21 @@ def _phase(sequence: Sequence, sourced: np.ndarray | None, model: BlurScene, cac
         moved.load_state(model.state())
         model = moved
     return frames, model
+
+
+@dataclass(frozen=True)
+class _Shutter:
+    """[ours] Each frame's rolling-shutter readout motion (N, 6; zeros: a global shutter) and its median sensor
+    depth (N,): where the skew is measured, and where a re-blurred render's rows are warped from a surface-less
+    pixel; a skew is taken as at most ``max_skew_px``."""
+
+    motions: np.ndarray
+    median_depth: np.ndarray
+    max_skew_px: float
+
+    def skew_px(self, focal: float) -> float:
+        """The most any frame's first or last row lies from its pose on the image (:func:`readout_px`, pixels at
+        focal ``focal``), at most ``max_skew_px``: a pose jump between neighbours must not blow up the anchors'
+        margin."""
+        skew = float(readout_skews(self.motions, focal, self.median_depth).max())
+        return min(skew, self.max_skew_px)

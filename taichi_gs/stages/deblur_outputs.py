@@ -7,7 +7,6 @@ import math
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,12 +22,9 @@ from ..photometric import apply_affine
 from ..plots import image_grid, line_plot
 from ..splats import Splats
 from .deblur_config import DeblurConfig
-from .deblur_frames import _Frames
+from .deblur_frames import _Frames, _Shutter
 from .exposures import Exposures, exposure_px
 from .gauge import FrameShift
-
-if TYPE_CHECKING:
-    from .deblur import _Shutter
 
 
 @dataclass
@@ -110,7 +106,7 @@ def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     first = sequence.color(0)
     K = sequence.K()
     shutil.rmtree(stage_dir / "renders" / "as_read", ignore_errors=True)  # an earlier run's, with another readout
-    skew = shutter.skew_px(K[0, 0], config)
+    skew = shutter.skew_px(K[0, 0])
     full = BlurScene(splats, K, first.shape[1], first.shape[0], warp_margin=math.ceil(skew) + 2 if skew > 0 else 0)
     scale = sequence.intrinsics.depth_scale
     rows, names = [], []
