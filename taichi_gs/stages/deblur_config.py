@@ -6,93 +6,120 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from ..validation import (
+    ANY,
+    COUNT,
+    FRACTION,
+    LEARNING_RATE,
+    NON_NEGATIVE,
+    OPTIONAL_COUNT,
+    POSITIVE,
+    Rule,
+    at_least,
+    one_of,
+    setting,
+    within,
+)
 
 
 @dataclass(frozen=True)
 class DeblurConfig:
     """Every number stage 3 uses; defaults follow the method and 3DGS (`paper` preset)."""
 
-    k: int = 15  # virtual sharp views per exposure
-    holdout_every: int = 3  # one test view per h frames; 0 = train on all
-    holdout: str = "every"  # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data)
-    iterations: int = 30000
-    lambda_dssim: float = 0.2  # l_B
-    lambda_depth: float = 0.1  # l_D
-    sh_degree: int = 3
-    lr_means: float = 1.6e-4  # times the scene extent, decayed to lr_means_final
-    lr_means_final: float = 1.6e-6
-    lr_colors: float = 0.0025
-    lr_opacity: float = 0.05
-    lr_scales: float = 0.005
-    lr_quats: float = 0.001
-    lr_exposure: float = 1e-3  # Adam on the se(3) offsets, decayed to lr_exposure_final
-    lr_exposure_final: float = 1e-4
-    exposure_from: int = 0  # exposures stay at their start for this many iterations (the scene settles first)
-    initial_exposure_fraction: float = 0.5  # offsets start at +-half this share of the motion to the neighbours
-    min_open_px: float = 0.25  # exposures narrower than this on the image are re-opened to it
-    max_step_px: float = 1.0  # warn when adjacent virtual views move more than this
-    densify_from: int = 500
-    densify_until: int = 15000
-    densify_every: int = 100
-    densify_grad: float = 0.0002  # 3DGS's threshold on the mean NDC positional gradient
-    split_scale: float = 0.01  # clone below, split above this share of the scene extent
-    prune_opacity: float = 0.005
-    prune_scale: float = 0.1  # drop Gaussians larger than this share of the scene extent
-    max_gaussians: int = 2_000_000
+    RELATIONS: ClassVar[tuple[tuple[str, Callable[[Any], bool]], ...]] = (
+        ("densify_from must not exceed densify_until", lambda c: c.densify_from <= c.densify_until),
+        ("readout_ms (a rolling shutter) needs warp_views = true", lambda c: c.readout_ms == 0 or c.warp_views),
+    )
+
+    k: int = setting(15, COUNT)  # virtual sharp views per exposure
+    # one test view per h frames; 0 = train on all
+    holdout_every: int = setting(3, Rule((lambda v: v == 0 or v >= 2), "0 (no test views) or at least 2"))
+    # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data)
+    holdout: str = setting("every", one_of("every", "sharpest"))
+    iterations: int = setting(30000, COUNT)
+    lambda_dssim: float = setting(0.2, FRACTION)  # l_B
+    lambda_depth: float = setting(0.1, NON_NEGATIVE)  # l_D
+    sh_degree: int = setting(3, one_of(0, 1, 2, 3))
+    lr_means: float = setting(1.6e-4, LEARNING_RATE)  # times the scene extent, decayed to lr_means_final
+    lr_means_final: float = setting(1.6e-6, LEARNING_RATE)
+    lr_colors: float = setting(0.0025, LEARNING_RATE)
+    lr_opacity: float = setting(0.05, LEARNING_RATE)
+    lr_scales: float = setting(0.005, LEARNING_RATE)
+    lr_quats: float = setting(0.001, LEARNING_RATE)
+    lr_exposure: float = setting(1e-3, LEARNING_RATE)  # Adam on the se(3) offsets, decayed to lr_exposure_final
+    lr_exposure_final: float = setting(1e-4, LEARNING_RATE)
+    # exposures stay at their start for this many iterations (the scene settles first)
+    exposure_from: int = setting(0, OPTIONAL_COUNT)
+    # offsets start at +-half this share of the motion to the neighbours
+    initial_exposure_fraction: float = setting(0.5, FRACTION)
+    min_open_px: float = setting(0.25, NON_NEGATIVE)  # exposures narrower than this on the image are re-opened to it
+    max_step_px: float = setting(1.0, POSITIVE)  # warn when adjacent virtual views move more than this
+    densify_from: int = setting(500, OPTIONAL_COUNT)
+    densify_until: int = setting(15000, OPTIONAL_COUNT)
+    densify_every: int = setting(100, COUNT)
+    densify_grad: float = setting(0.0002, POSITIVE)  # 3DGS's threshold on the mean NDC positional gradient
+    split_scale: float = setting(0.01, POSITIVE)  # clone below, split above this share of the scene extent
+    prune_opacity: float = setting(0.005, FRACTION)
+    prune_scale: float = setting(0.1, POSITIVE)  # drop Gaussians larger than this share of the scene extent
+    max_gaussians: int = setting(2_000_000, COUNT)
     # [ours] the cap is at least this multiple of the Gaussians stage 2 hands over (0: max_gaussians alone), so
     # that a scene handed over above max_gaussians still densifies and fills its holes
-    densify_headroom: float = 0.0
-    reset_opacity_every: int = 3000  # 0 = never
-    test_pose_iterations: int = 100  # test-time exposure refinement per held-out frame; 0 = off
-    lr_test_pose: float = 1e-3  # Adam's rate, or Rprop's first step
+    densify_headroom: float = setting(0.0, NON_NEGATIVE)
+    reset_opacity_every: int = setting(3000, OPTIONAL_COUNT)  # 0 = never
+    # test-time exposure refinement per held-out frame; 0 = off
+    test_pose_iterations: int = setting(100, OPTIONAL_COUNT)
+    lr_test_pose: float = setting(1e-3, LEARNING_RATE, POSITIVE)  # Adam's rate, or Rprop's first step
     # [ours] optimiser of the held-out fits: "adam" (the method's) or "rprop" (per-coordinate step sizes
     # from the gradient's sign history: the same deterministic loss every step, so fewer steps to converge)
-    test_fit: str = "adam"
+    test_fit: str = setting("adam", one_of("adam", "rprop"))
     # [ours] a held-out frame's fit starts from the mid-exposure correction its training neighbours learned
     # (the mean of (d_s + d_e) / 2 of the nearest training frame on each side), not from its stage-2 pose
     test_fit_from_neighbours: bool = False
     # [ours] with warp_views, a held-out fit keeps its anchor renders across steps and warps every step's views
     # from them (no rasterizer pass while only the exposure moves), rendering them again once one would move
     # more than this many pixels (0: render the anchors at every step, as training does)
-    test_fit_refresh_px: float = 0.0
-    resolution_scale: int = 1  # train at 1/scale of the input resolution; outputs are full size
-    seed: int = 0
-    checkpoint_every: int = 1000
+    test_fit_refresh_px: float = setting(0.0, NON_NEGATIVE)
+    resolution_scale: int = setting(1, COUNT)  # train at 1/scale of the input resolution; outputs are full size
+    seed: int = setting(0, ANY)
+    checkpoint_every: int = setting(1000, COUNT)
     # [ours] a trained affine colour transform (3 x 4) per frame on the re-blurred render (exposure and
     # white-balance changes of real cameras), pulled to identity by lambda_colour_affine |M - I|^2
     colour_affine: bool = False
-    lr_colour_affine: float = 0.005
-    lambda_colour_affine: float = 0.01
+    lr_colour_affine: float = setting(0.005, LEARNING_RATE)
+    lambda_colour_affine: float = setting(0.01, NON_NEGATIVE)
     # [ours] schedule: iterations = max(iterations, iterations_per_view x training views), with the
     # densification and exposure windows stretched alike (0 = fixed iterations)
-    iterations_per_view: int = 0
+    iterations_per_view: int = setting(0, OPTIONAL_COUNT)
     epoch_sampling: bool = False  # [ours] visit training views in shuffled epochs instead of at random
     # [ours] at each densification, in fill_frames random training views, add a Gaussian every
     # fill_stride pixels where the render's alpha is below 0.5 (no Gaussians: depth holes of the
     # sensor), at the view's sensor depth, else the scene's rendered depth, else the nearest such depth
     fill_uncovered: bool = False
-    fill_frames: int = 2
-    fill_stride: int = 2
+    fill_frames: int = setting(2, COUNT)
+    fill_stride: int = setting(2, COUNT)
     # [ours] splat footprint: before training, split Gaussians wider (largest sigma) than init_max_px
     # pixels at the training resolution, seen from the nearest training camera (stage 2's fixed-size
     # Gaussians are wider than the blur at 320x240); during densification, split instead of clone
     # those wider than split_px pixels (0 = off: 3DGS's world-size rule split_scale alone)
-    init_max_px: float = 0.0
-    split_px: float = 0.0
-    grid_frames: int = 4
+    init_max_px: float = setting(0.0, ANY)
+    split_px: float = setting(0.0, ANY)
+    grid_frames: int = setting(4, OPTIONAL_COUNT)
     # [ours] coarse-to-fine: the first coarse_fraction of the iterations train at 1/coarse_scale, then
     # 1/(coarse_scale/2), ... 1/2 of the training resolution (equal shares; 1 = off), the rest at it
-    coarse_scale: int = 1
-    coarse_fraction: float = 0.0
+    coarse_scale: int = setting(1, COUNT)
+    coarse_fraction: float = setting(0.0, FRACTION)
     # [ours] k per exposure: each step renders the fewest views (k_min..k) whose neighbours lie at most
     # max_step_px apart at the resolution trained (the 1 px rule per frame and phase); off: always k
     adaptive_k: bool = False
-    k_min: int = 3
+    k_min: int = setting(3, COUNT)
     # [ours] fewer views while the scene is soft: for the first early_views_fraction of the iterations,
     # adaptive k allows early_step_scale x max_step_px between neighbouring views (0 = off)
-    early_views_fraction: float = 0.0
-    early_step_scale: float = 2.0
+    early_views_fraction: float = setting(0.0, FRACTION)
+    early_step_scale: float = setting(2.0, at_least(1.0))
     # [ours] keep the Gaussians in Morton order of their centres in memory (at the start and after every
     # densification and fill): the same scene, fewer cache misses in the per-tile work
     spatial_order: bool = False
@@ -103,21 +130,21 @@ class DeblurConfig:
     # densify_grad), "error" (the error_densify_share of them that carry the most re-blur error: blending
     # weight x absolute error, summed over error_densify_frames random training views) or "both" (the
     # error's after the gradient's)
-    densify_by: str = "gradient"
-    error_densify_share: float = 0.05
-    error_densify_frames: int = 4
+    densify_by: str = setting("gradient", one_of("gradient", "error", "both"))
+    error_densify_share: float = setting(0.05, FRACTION)
+    error_densify_frames: int = setting(4, COUNT)
     # [ours] after the last densification, drop the Gaussians of least blending weight (summed over the training
     # views' sharp mid-exposure renders: LightGaussian's global significance) that together make at most this
     # share of the images; the rest of the run trains and renders fewer Gaussians (0 = off). 0.01: 27-35% fewer
     # Gaussians, -0.04 to -0.07 dB held-out, 0.91-0.95x the stage-3 time (docs/notebook/benchmarks-2026-11.md,
     # "Significance pruning")
-    prune_weight_share: float = 0.0
+    prune_weight_share: float = setting(0.0, FRACTION)
     # [ours] warped virtual views: render only the fewest anchor views (padded by warp_px + 2 pixels; an odd
     # number, one at mid-exposure) that leave every virtual view within warp_px of one, and make the k views
     # by warping the anchors' renders through their depth (exact for rotations; disocclusions of
     # translations are approximated). 12 px: docs/notebook/benchmarks-2026-11.md, "One anchor at mid-exposure"
     warp_views: bool = False
-    warp_px: float = 12.0
+    warp_px: float = setting(12.0, within(0.5, 64))
     # [ours] with warp_views and adaptive_k, an even count of views is raised by one (within k) where that
     # interpolates no more views: the added view puts one at each odd group's anchor pose, which the warp
     # reads instead of interpolating, so the exposure is sampled more finely at the same cost
@@ -129,18 +156,18 @@ class DeblurConfig:
     # determines it to keep_frame_scale_error (standard error), else the translation alone. Colour renders are
     # unchanged; OUT/deblur/frame.json records the move.
     keep_frame: bool = False
-    keep_frame_scale_error: float = 0.001
+    keep_frame_scale_error: float = setting(0.001, NON_NEGATIVE)
     # [ours] after every update of an exposure (training and held-out fits), its mid-exposure offset (d_s + d_e) / 2
     # shrinks by this share towards stage 2's pose, its span unchanged: 0 leaves it free (the method), 1 pins every
     # mid-exposure pose at stage 2's (the exposures learn their spans only)
-    mid_exposure_decay: float = 0.0
+    mid_exposure_decay: float = setting(0.0, FRACTION)
     # [ours] a rolling shutter: the colour camera reads its rows top to bottom over readout_ms milliseconds
     # (0: a global shutter, the method). Each virtual view's rows are then warped from the anchors at the poses
     # where they were read, along each frame's velocity from its neighbours in the trajectory
     # (``rolling_shutter``); needs warp_views. The sharp renders and "error" densification stay global-shutter.
     # camera_readout: with readout_ms 0 and warp_views, the readout of a camera the sequence's reading names
     # where it is known (``rolling_shutter.KNOWN_READOUT_MS``: TUM fr1, 7-Scenes), else 0
-    readout_ms: float = 0.0
+    readout_ms: float = setting(0.0, NON_NEGATIVE)
     camera_readout: bool = False
     # [ours] with a readout, the depth frames are de-skewed to their frames' poses (rolling_shutter.DeskewedSequence,
     # each frame's motion from stage 2's poses), so that the depth loss and fill_uncovered, which use

@@ -144,7 +144,7 @@ def _close(a: np.ndarray, b: np.ndarray, config: PoseConfig) -> np.ndarray:
 def _long_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
     """(i, i + k) for every span k in graph_long_spans and every graph_long_every-th frame i whose chained
     cameras are close (:func:`_close`)."""
-    every = config.graph_long_every  # at least 1: validation.FIELD_RULES
+    every = config.graph_long_every  # at least 1: its rule in pose_config
     return [(int(i), int(i) + k) for k in config.graph_long_spans if k < len(poses)
             for i in np.flatnonzero(_close(poses[:len(poses) - k:every], poses[k::every], config)) * every]
 

@@ -32,8 +32,6 @@ FROM_JOINT = "joint"
 # ICP starts closer than this (every entry of the 4 x 4 transform) give one RGB-D odometry run: ICP from the
 # flow solve and ICP from the prior ended within 1e-9 of each other in 2862 of 3926 stored pairs
 SAME_START_ATOL = 1e-9
-# Names of a pair's candidates (see _candidates): what started what.
-CANDIDATE_NAMES = ("rgbd-icp", "rgbd-icp-prior", "rgbd-flow", "icp", "icp-prior", "joint", "flow", "constant-velocity")
 
 
 @dataclass
