@@ -9,7 +9,6 @@ import platform
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Optional, TypeVar
 
@@ -17,7 +16,15 @@ import typer
 from rich.markup import escape
 
 from . import __version__
-from .camera_paths import PATHS
+from .choices import (
+    ARCH_CHOICES,
+    BLUR_LEVELS,
+    EXPORT_FORMATS,
+    PRESET_NAMES,
+    RENDER_PATHS,
+    SCENES,
+    TRAJECTORIES,
+)
 from .cli_options import (
     AS_FOUND,
     CommandGroup,
@@ -28,10 +35,7 @@ from .cli_options import (
     with_input_options,
 )
 from .errors import BackendError, DivergenceError, InputError
-from .export import FORMATS as EXPORT_FORMATS
 from .stages.declaration import STAGE_NAMES
-from .synth import BLUR_LEVELS, TRAJECTORIES
-from .synth_scenes import SCENES
 from .terminal import Verbosity, configure_logging, console, progress_bar
 
 app = typer.Typer(
@@ -49,12 +53,7 @@ MAX_SYNTH_FRAMES = 10_000
 MAX_SYNTH_SIZE = 4096
 
 
-class Arch(str, Enum):
-    auto = "auto"
-    cpu = "cpu"
-    cuda = "cuda"
-    vulkan = "vulkan"
-    metal = "metal"
+Arch = choices("Arch", ARCH_CHOICES)
 
 
 def _fail(message: str, code: int) -> None:
@@ -252,11 +251,7 @@ def eval_(
         console.print(f"wrote {run_dir / 'metrics.json'} and plots in {run_dir / 'report'}", highlight=False)
 
 
-class Preset(str, Enum):
-    fast = "fast"
-    paper = "paper"
-
-
+Preset = choices("Preset", PRESET_NAMES)
 Stage = choices("Stage", STAGE_NAMES)
 
 
@@ -404,7 +399,7 @@ def reconstruct(
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 
 
-PathKind = choices("PathKind", PATHS)
+PathKind = choices("PathKind", RENDER_PATHS)
 
 
 @app.command()
@@ -427,7 +422,7 @@ def render(
     console.print(f"wrote {frames} views to {target} and {target}.gif")
 
 
-ExportFormat = choices("ExportFormat", (*EXPORT_FORMATS, "mesh"))
+ExportFormat = choices("ExportFormat", EXPORT_FORMATS)
 
 
 @app.command()
