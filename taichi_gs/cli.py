@@ -302,10 +302,10 @@ def pose(
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
     sequence = reading.load(folder)
     _init_backend()
-    with output_lock(out), _profiled(profile, out):
+    with output_lock(out), _profiled(profile, out) as threads:
         check_run_input(out, sequence)
         write_run_info(out, sequence)
-        summary = pipeline.run_stage("pose", sequence, out, config, progress_bar)  # --profile wraps it
+        summary = pipeline.run_stage("pose", sequence, out, config, progress_bar, threads=threads)
     console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
 
 
@@ -393,8 +393,9 @@ def reconstruct(
         verb = "done" if stage.ran else "already done, skipped"
         console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
 
-    with output_lock(out), _profiled(profile, out):
-        run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report)
+    with output_lock(out), _profiled(profile, out) as threads:
+        run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report,
+                threads=threads)
     console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 
@@ -515,16 +516,22 @@ def deblur(
 
 
 @contextmanager
-def _profiled(profile: bool, out: Path) -> Iterator[None]:
-    """With ``profile``, time the enclosed stages' work and write OUT/profile.json and OUT/profile.md."""
+def _profiled(profile: bool, out: Path) -> Iterator[int | None]:
+    """With ``profile``, time the enclosed stages' work and write OUT/profile.json and OUT/profile.md. Yields
+    the stages' thread count: one when profiled (stage 1's sections then do not overlap), else None (their
+    configs')."""
     if not profile:
-        yield
+        yield None
         return
     from . import profiling
+    from .kernels.splat import sync
 
-    profiler = profiling.Profiler()
+    profiler = profiling.Profiler(sync=sync)
     profiling.install(profiler)
-    yield
+    try:
+        yield 1
+    finally:
+        profiling.uninstall()
     paths = profiling.write(profiler, out)
     console.print(f"profile: {paths[1]}", highlight=False)
 

@@ -11,6 +11,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .. import profiling
 from ..errors import InputError
 from ..geometry import intrinsics_matrix
 from . import jsonout
@@ -106,6 +107,7 @@ class Sequence:
     def K(self) -> np.ndarray:
         return self.intrinsics.K()
 
+    @profiling.timed("input frames (I/O)")
     def color(self, i: int) -> np.ndarray:
         """Blurred colour of frame i, float32 H x W x 3 in [0, 1]."""
         return self._checked_color(self.rgb_paths[i])
@@ -116,6 +118,7 @@ class Sequence:
             raise InputError(self.root, "sequence has no sharp ground-truth images", "use a sequence made by 'taichi-gs synth'")
         return self._checked_color(self.sharp_paths[i])
 
+    @profiling.timed("input frames (I/O)")
     def depth(self, i: int) -> np.ndarray:
         """Depth of frame i in metres, float32 H x W, 0 where invalid."""
         path = self.depth_paths[i]

@@ -27,6 +27,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
+from .. import profiling
 from . import row_spans, runtime
 from .splat import to_device
 
@@ -399,6 +400,7 @@ def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1
     return l1_and_clipped_mse(pred, target, grad, weight, mask)[0]
 
 
+@profiling.timed("losses (device)")
 def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
                        mask: PixelWeights | None = None) -> tuple[float, float]:
     """:func:`l1`, and from the same pass the mean of ``(clip(pred, 0, 1) - target)^2`` over the same
@@ -410,12 +412,14 @@ def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, w
     return float(value), float(mse[0])
 
 
+@profiling.timed("losses (device)")
 def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
     """Mean ``|pred - target|`` over pixels with target > 0 of (H, W) depth maps; adds to ``grad``."""
     dt = _checked(pred, target, grad)
     return float(_kernels(dt).masked_depth_l1(pred, target, grad, weight, *_partials(pred, 2)))
 
 
+@profiling.timed("losses (device)")
 def normalised_depth_l1_and_coverage(depth: ti.Ndarray, transmittance: ti.Ndarray, target: ti.Ndarray,
                                      grad_depth: ti.Ndarray, grad_alpha: ti.Ndarray, min_alpha: float,
                                      weight: float = 1.0, coverage_weight: float = 1.0) -> tuple[float, float]:
@@ -432,6 +436,7 @@ def normalised_depth_l1_and_coverage(depth: ti.Ndarray, transmittance: ti.Ndarra
     return float(value), float(coverage[0])
 
 
+@profiling.timed("losses (device)")
 def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
           mask: PixelWeights | None = None) -> float:
     """``1 - SSIM`` of (H, W, C) images (3DGS window and constants), the SSIM map averaged over
@@ -449,6 +454,7 @@ def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float 
     )
 
 
+@profiling.timed("losses (device)")
 def opacity_binarization(logits: ti.Ndarray, grad: ti.Ndarray, n: int, weight: float = 1.0) -> float:
     """``sum o^2 (1 - o)^2`` over the first n logits; adds ``weight * dL/dlogit`` to ``grad``."""
     dt = logits.dtype

@@ -24,6 +24,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
+from .. import profiling
 from . import host_copy, project, raster_gpu, rasterize, runtime, scan, tiles
 from .project import P_WIDTH
 from .rasterize import B_WIDTH, E_WIDTH, F_WIDTH, N_SLOT_GRADS
@@ -463,6 +464,7 @@ class Rasterizer:
         self._zeros: dict[tuple, ti.Ndarray] = {}
         self._scratch: dict[object, ti.Ndarray] = {}
 
+    @profiling.timed("render forward", phases="timings")
     def forward(
         self, gaussians: DeviceGaussians, camera: Camera, view: int = 0, background=(0.0, 0.0, 0.0),
         timings: dict | None = None, with_colour: bool = True,
@@ -522,6 +524,7 @@ class Rasterizer:
         v.with_colour = with_colour
         return v
 
+    @profiling.timed("render backward")
     def backward(self, gaussians: DeviceGaussians, view: View, d_rgb=None, d_depth=None, d_alpha=None) -> np.ndarray:
         """Accumulate dL/dparams into ``gaussians.grads``; return dL/d(pose) (6,)."""
         width, height = view.size

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import profiling
 from ..deblur_model import (
     BlurScene,
     BlurStep,
@@ -291,6 +292,7 @@ def _test_fit_steps(config: DeblurConfig) -> tuple[Callable[[np.ndarray, np.ndar
             lambda M, grad: colour_step(colour_adam, M, grad, 0, config))
 
 
+@profiling.timed("test-view exposure fits")
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
                           frame: int, config: DeblurConfig,
                           readout_motion: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .. import profiling
 from ..deblur_model import BlurScene
 from ..density import DensitySchedule
 from .deblur_config import DeblurConfig
@@ -34,6 +35,7 @@ def nearest_filled(depth: np.ndarray) -> np.ndarray:
     return lookup[labels]
 
 
+@profiling.timed("densify / prune / fill")
 def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_to_world: np.ndarray, K: np.ndarray,
                    stride: int, max_gaussians: int, rng: np.random.Generator, radius_px: float | None = None) -> int:
     """Add Gaussians where the render of a view has alpha < 0.5 (among the pixels the camera saw, if the

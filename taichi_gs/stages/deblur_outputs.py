@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import profiling
 from ..deblur_model import BlurScene
 from ..geometry import virtual_pose
 from ..io import jsonout
@@ -60,6 +61,7 @@ def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, confi
              f"(--k {needed} keeps the steps under {config.max_step_px:g} px)")]
 
 
+@profiling.timed("outputs (renders, PLY, plots: I/O)")
 def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, exposures: Exposures, result: DeblurResult,
                    config: DeblurConfig, sharpness: list[float], shift: FrameShift | None, shutter: _Shutter) -> None:
     colours = exposures.trained_colours()

@@ -8,6 +8,7 @@ from concurrent.futures import Executor
 
 import numpy as np
 
+from .. import profiling
 from ..geometry import invert
 from ..icp import align, depth_cloud, open3d, rgbd_odometry
 from ..io.jsonout import finite_or_null
@@ -162,6 +163,7 @@ def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, i
     return pairs
 
 
+@profiling.timed("pose graph: information matrices")
 def _information(frames: FrameCache, i: int, j: int, T: np.ndarray, config: PoseConfig) -> np.ndarray:
     """Open3D's point-to-point information matrix of the edge i -> j, reordered to [translation, rotation]."""
     info = np.asarray(open3d().pipelines.registration.get_information_matrix_from_point_clouds(

@@ -33,6 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .. import profiling
 from ..config import tomllib
 from ..errors import InputError
 from ..geometry import adjoint, invert, median_depths, se3_exp, se3_log
@@ -370,6 +371,7 @@ def _trained_splats(model: DepthRefiner, splats: Splats, config: RefineConfig) -
     return final
 
 
+@profiling.timed("outputs (renders, PLY, plots: I/O)")
 def _write_outputs(stage_dir: Path, sequence: Sequence, poses: np.ndarray, splats: Splats, colors: np.ndarray,
                    history: list[dict[str, float]]) -> None:
     """The stage's files: ``splats`` (with ``colors`` per Gaussian for points.ply), ``poses``, the loss history."""
