@@ -76,16 +76,16 @@ from pathlib import Path
 import numpy as np
 
 from taichi_gs.evaluate import ate, match_by_time, trajectory_errors
-from taichi_gs.flow import dis_flow, to_gray_u8
 from taichi_gs.geometry import backproject, invert, so3_log
-from taichi_gs.icp import align, depth_cloud, rgbd_odometry
 from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import read_tum
-from taichi_gs.pose_verify import frame_view, verify
 from taichi_gs.stages.pose import PRESETS as POSE_PRESETS
 from taichi_gs.stages.pose import PoseConfig, chain_poses, run_pose
-from taichi_gs.stages.pose_config import METHOD_ONLY
-from taichi_gs.stages.pose_pair import icp_levels
+from taichi_gs.stages.pose.config import METHOD_ONLY
+from taichi_gs.stages.pose.flow import dis_flow, to_gray_u8
+from taichi_gs.stages.pose.icp import align, depth_cloud, rgbd_odometry
+from taichi_gs.stages.pose.pair import icp_levels
+from taichi_gs.stages.pose.verify import frame_view, verify
 
 from pair_tails import tail_line
 

@@ -39,15 +39,15 @@ from pathlib import Path
 import numpy as np
 
 from taichi_gs.evaluate import psnr, rotation_angle_deg, ssim
-from taichi_gs.icp import align, depth_cloud
 from taichi_gs.io.jsonout import write_json
 from taichi_gs.io.load import load_sequence
 from taichi_gs.io.sequence import Sequence, read_color
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.noreference import gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from taichi_gs.plots import image_grid
-from taichi_gs.stages.pose_config import PoseConfig
-from taichi_gs.stages.pose_pair import icp_levels
+from taichi_gs.stages.pose.config import PoseConfig
+from taichi_gs.stages.pose.icp import align, depth_cloud
+from taichi_gs.stages.pose.pair import icp_levels
 
 FLOOR_NEIGHBOURS = 2  # stretch frames nearest in view that the floor warps into each reference
 GRID_VIEWS = 4  # references shown in each arm's image grid

@@ -121,7 +121,7 @@ def main(
 
 
 def _open3d_version() -> str:
-    from .icp import open3d
+    from .stages.pose.icp import open3d
 
     try:
         return open3d().__version__

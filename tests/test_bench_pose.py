@@ -22,7 +22,7 @@ from pose import (OURS, pair_scores, reference_breaks, reference_relatives, run_
 
 from taichi_gs.evaluate import ate  # noqa: E402
 from taichi_gs.io.load import load_sequence  # noqa: E402
-from taichi_gs.stages.pose_config import PRESETS  # noqa: E402
+from taichi_gs.stages.pose.config import PRESETS  # noqa: E402
 
 
 def _walk(n: int) -> np.ndarray:

@@ -48,7 +48,7 @@ WITHOUT_OPEN3D = """
 import sys
 sys.modules["open3d"] = None  # any import of open3d now fails, as where it is not installed
 import taichi_gs.pipeline, taichi_gs.stages.refine, taichi_gs.stages.deblur, taichi_gs.export, taichi_gs.evaluate
-from taichi_gs import icp
+from taichi_gs.stages.pose import icp
 try:
     icp.open3d()
 except ImportError as error:

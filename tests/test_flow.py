@@ -7,9 +7,9 @@ import pytest
 from test_pose_scene import MOTION, exact_flow, pair
 
 from taichi_gs.errors import InputError
-from taichi_gs.flow import (FileFlow, dis_flow, finest_scale, finite_flow, forward_backward_mask, read_flow, rigid_flow,
-                            to_gray_u8, write_flow)
 from taichi_gs.geometry import se3_exp
+from taichi_gs.stages.pose.flow import (FileFlow, dis_flow, finest_scale, finite_flow, forward_backward_mask,
+                                        read_flow, rigid_flow, to_gray_u8, write_flow)
 
 
 def random_flow(h: int = 12, w: int = 17, seed: int = 0) -> np.ndarray:

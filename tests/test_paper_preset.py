@@ -7,7 +7,8 @@ import dataclasses
 
 import pytest
 
-from taichi_gs.stages import deblur, pose_config, refine
+from taichi_gs.stages import deblur, refine
+from taichi_gs.stages.pose import config as pose_config
 
 # Per stage: each addition of ours and the value that switches it off (the method's).
 ADDITIONS = {

@@ -6,7 +6,7 @@ import numpy as np
 
 from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert, se3_exp
-from taichi_gs.pose_graph import Edge, optimise, rechoose
+from taichi_gs.stages.pose.graph import Edge, optimise, rechoose
 
 
 def _trajectory(n: int, rng: np.random.Generator) -> np.ndarray:

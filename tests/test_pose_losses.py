@@ -9,12 +9,12 @@ import pytest
 from test_pose_scene import MOTION, exact_flow, pair
 
 from taichi_gs.geometry import invert, se3_exp, se3_log
-from taichi_gs.icp import reliable_depth_mask
-from taichi_gs.stages.pose_config import PoseConfig
-from taichi_gs.stages.pose_pair import add_joint, sample_pair
-from taichi_gs.stages.pose_losses import (depth_consistency_residuals, flow_residuals, photometric_residuals,
+from taichi_gs.stages.pose.config import PoseConfig
+from taichi_gs.stages.pose.icp import reliable_depth_mask
+from taichi_gs.stages.pose.losses import (depth_consistency_residuals, flow_residuals, photometric_residuals,
                                           point_to_plane_residuals, warp)
-from taichi_gs.stages.pose_solver import active_terms, linearise, solve
+from taichi_gs.stages.pose.pair import add_joint, sample_pair
+from taichi_gs.stages.pose.solver import active_terms, linearise, solve
 
 
 @pytest.fixture(scope="module")

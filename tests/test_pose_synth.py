@@ -11,7 +11,7 @@ import pytest
 from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert
 from taichi_gs.stages.pose import run_pose
-from taichi_gs.stages.pose_config import METHOD_ONLY, PoseConfig
+from taichi_gs.stages.pose.config import METHOD_ONLY, PoseConfig
 
 synth = pytest.importorskip("taichi_gs.synth")
 
@@ -62,9 +62,9 @@ def test_full_resolution_flow_fits_a_blurred_translation_closer_than_the_presets
     """DIS's medium preset stops at half resolution; on 320 px wide blurred frames its flow solve comes up short
     along the motion. Measured 2026-11-29 on these five pairs: median 2.6% short, at full resolution (the
     default) 1.5%; on a 60-frame translation 3.6% and 2.3%."""
-    from taichi_gs.flow import to_gray_u8
     from taichi_gs.io.load import load_sequence
-    from taichi_gs.stages.pose_pair import _flow_solve, dis_flows, sample_pair
+    from taichi_gs.stages.pose.flow import to_gray_u8
+    from taichi_gs.stages.pose.pair import _flow_solve, dis_flows, sample_pair
 
     synth.generate(synth.SynthConfig(width=320, height=240, frames=6, trajectory="translation", blur="extreme", seed=0),
                    tmp_path / "seq")

@@ -9,10 +9,10 @@ import pytest
 from test_pose_scene import pair
 
 from taichi_gs.geometry import invert, se3_exp, se3_log
-from taichi_gs.icp import depth_cloud
-from taichi_gs.pose_verify import depth_normals, frame_view, verify
-from taichi_gs.stages.pose_config import PoseConfig
-from taichi_gs.stages.pose_pair import estimate_relative_pose
+from taichi_gs.stages.pose.config import PoseConfig
+from taichi_gs.stages.pose.icp import depth_cloud
+from taichi_gs.stages.pose.pair import estimate_relative_pose
+from taichi_gs.stages.pose.verify import depth_normals, frame_view, verify
 
 START = se3_exp(np.array([0.1, 0.55, 1.5, 0.0, 0.0, 0.0]))  # facing the back wall 1.5 m away: a strip of floor
 MOTION = se3_exp(np.array([0.01, 0.005, 0.0, 0.0, 0.008, 0.0]))
@@ -78,9 +78,9 @@ def _wall_pair(distance_m: float):
 def test_flow_check_catches_a_slide_along_a_plain_wall_that_the_score_misses():
     import dataclasses
 
-    from taichi_gs.flow import rigid_flow
-    from taichi_gs.pose_verify import FlowCheck, flow_disagreement
-    from taichi_gs.stages.pose_pair import Candidate, choose
+    from taichi_gs.stages.pose.flow import rigid_flow
+    from taichi_gs.stages.pose.pair import Candidate, choose
+    from taichi_gs.stages.pose.verify import FlowCheck, flow_disagreement
 
     (frame_a, frame_b), K, true = _wall_pair(1.3)
     config = PoseConfig()
@@ -98,7 +98,7 @@ def test_flow_check_catches_a_slide_along_a_plain_wall_that_the_score_misses():
 
 
 def test_interpolation_noise_is_largest_on_a_pixel_smallest_between_four_and_one_on_average():
-    from taichi_gs.pose_verify import interpolation_noise
+    from taichi_gs.stages.pose.verify import interpolation_noise
 
     pixels = np.array([[3.0, 7.0], [3.5, 7.0], [3.5, 7.5], [10.25, 2.0]])
     expected = np.sqrt((1.0 + np.array([1.0, 0.5, 0.25, 0.625])) / (13.0 / 9.0))
@@ -133,7 +133,8 @@ def test_graph_edge_gets_a_joint_candidate_on_its_own_flows(monkeypatch):
     ``graph_joint = false`` there is none."""
     from test_pose import SceneSequence
 
-    from taichi_gs.stages import pose_edges, pose_frames
+    from taichi_gs.stages.pose import edges as pose_edges
+    from taichi_gs.stages.pose import frames as pose_frames
 
     sequence = SceneSequence(np.stack([START, START @ invert(MOTION)]))
     K = sequence.intrinsics.K()

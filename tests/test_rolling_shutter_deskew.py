@@ -12,17 +12,17 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-import taichi_gs.stages.pose as pose_stage
+import taichi_gs.stages.pose.run as pose_stage
 from taichi_gs import synth
 from taichi_gs.cli import app
 from taichi_gs.evaluate import ate
-from taichi_gs.io.load import load_sequence
 from taichi_gs.geometry import se3_exp
+from taichi_gs.io.load import load_sequence
 from taichi_gs.rolling_shutter import (MAX_DESKEW_WIDTH_FRACTION, DeskewedSequence, deskew_maps, deskewing_motions,
                                        readout_motions, readout_px, stage_readout_ms)
 from taichi_gs.stages import refine as refine_stage
 from taichi_gs.stages.pose import pose_readout_ms, run_pose
-from taichi_gs.stages.pose_config import PRESETS, PoseConfig
+from taichi_gs.stages.pose.config import PRESETS, PoseConfig
 
 KINECT_V1 = {"format": "tum", "camera": "fr1"}
 

@@ -21,9 +21,9 @@ from taichi_gs.io.atomic import write_text
 from taichi_gs.io.load import load_sequence
 from taichi_gs.io.lock import output_lock
 from taichi_gs.io.sequence import IntrinsicsOverride
-from taichi_gs.stages import pose as pose_stage
 from taichi_gs.stages.divergence import DivergenceGuard
 from taichi_gs.stages.pose import PoseConfig, run_pose
+from taichi_gs.stages.pose import run as pose_stage
 from taichi_gs.synth import SynthConfig, generate
 
 

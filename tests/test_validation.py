@@ -74,7 +74,7 @@ def _other(value):
 def test_the_pair_cache_key_changes_with_the_fields_declared_to_change_a_pair():
     """Stage 1's pair cache is keyed by every field but those declared ``pair=False`` (the graph's, the
     fused cloud's, the readout's, the threads)."""
-    from taichi_gs.stages.pose_config import PRESETS
+    from taichi_gs.stages.pose.config import PRESETS
 
     base = PRESETS["fast"]
     outside = []

@@ -4,7 +4,7 @@ least as well as stage 1's did, judged by stage 1's own depth + colour verificat
 Stage 2 fits poses to depth alone, through Gaussians whose footprint smooths every depth step; along
 planes and low-relief structure its loss barely constrains a pose, and the positions it trains at the
 same time can absorb a pose's error. Started from good poses it can move them away from the truth while
-its own loss goes down (from exact ground truth too). :mod:`taichi_gs.pose_verify` is an independent
+its own loss goes down (from exact ground truth too). :mod:`taichi_gs.stages.pose.verify` is an independent
 judge that also uses colour, which constrains motion along planes. Both trajectories are scored on the
 same edges, every (i, j) with 0 < i - j <= ``neighbours``, as the mean verification score of the
 relative poses; the refined one is kept if its mean is not higher.
@@ -21,7 +21,7 @@ import numpy as np
 
 from ..geometry import invert
 from ..io.sequence import Sequence
-from ..pose_verify import FrameView, VerifySettings, frame_view, verify
+from .pose.verify import FrameView, VerifySettings, frame_view, verify
 
 
 @dataclass(frozen=True)

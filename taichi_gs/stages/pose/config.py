@@ -11,10 +11,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..flow import DIS_PRESETS
-from ..icp import reliable_depth_mask
-from ..pose_verify import VerifySettings
-from ..validation import (
+from ...validation import (
     ANY,
     COUNT,
     FRACTION,
@@ -29,9 +26,12 @@ from ..validation import (
     setting,
     within,
 )
-from .pose_solver import SolverSettings
+from .flow import DIS_PRESETS
+from .icp import reliable_depth_mask
+from .solver import SolverSettings
+from .verify import VerifySettings
 
-# Names of a pair's candidates (stages/pose_pair.py's _candidates: what started what), and verify_preference's rule.
+# Names of a pair's candidates (stages/pose/pair.py's _candidates: what started what), and verify_preference's rule.
 CANDIDATE_NAMES = ("rgbd-icp", "rgbd-icp-prior", "rgbd-flow", "icp", "icp-prior", "joint", "flow", "constant-velocity")
 CANDIDATE_LIST = Rule((lambda v: len(v) > 0 and set(v) <= set(CANDIDATE_NAMES)),
                       "a non-empty list of " + ", ".join(CANDIDATE_NAMES))
@@ -49,9 +49,9 @@ class PoseConfig:
     )
 
     # Optical flow
-    flow_dir: str = setting("", ANY)  # precomputed flows (see taichi_gs.flow); empty: OpenCV DIS
+    flow_dir: str = setting("", ANY)  # precomputed flows (see taichi_gs.stages.pose.flow); empty: OpenCV DIS
     flow_preset: str = setting("medium", one_of(*DIS_PRESETS))  # DIS preset: ultrafast | fast | medium
-    # [ours] DIS's finest pyramid level is at least this wide (0: the preset's own; see taichi_gs.flow.finest_scale)
+    # [ours] DIS's finest pyramid level is at least this wide (0: the preset's own; see taichi_gs.stages.pose.flow.finest_scale)
     flow_finest_width_px: int = setting(320, OPTIONAL_COUNT)
     seeded_retry: bool = True  # weak pair: redo it with DIS seeded by the prior's flow, then by rejected ICP's
     fb_alpha: float = setting(0.01, NON_NEGATIVE)  # forward-backward check: |f + b|^2 < alpha (|f|^2 + |b|^2) + beta
@@ -98,7 +98,7 @@ class PoseConfig:
     rgbd_depth_diff_max_m: float = setting(0.07, POSITIVE)
     # [ours] verified candidates: every candidate pose of a pair (flow solve, ICP from it, ICP from the
     # constant-velocity prior, RGB-D odometry from each ICP result, the prior itself) is scored by
-    # taichi_gs.pose_verify on both frames' depth and colour; the lowest score wins and sets "weak".
+    # taichi_gs.stages.pose.verify on both frames' depth and colour; the lowest score wins and sets "weak".
     # false: the method's path (flow solve, then ICP behind the fitness and jump guards).
     verify: bool = True
     # [ours] one more candidate, the joint solve: the flow term L_F plus a point-to-plane term L_P on frame
@@ -128,7 +128,7 @@ class PoseConfig:
     verify_depth_sigma_quadratic: float = setting(0.0025, NON_NEGATIVE)
     verify_photo_sigma: float = setting(0.04, POSITIVE)
     verify_photo_weight: float = setting(1.0, NON_NEGATIVE)
-    # [ours] robust pose graph (taichi_gs.pose_graph) over the pairs (i, i+1), extra edges (i, i+k) for k in
+    # [ours] robust pose graph (taichi_gs.stages.pose.graph) over the pairs (i, i+1), extra edges (i, i+k) for k in
     # graph_skips and loop closures where the chained cameras come back near an earlier one; each extra
     # edge is RGB-D odometry (and ICP with graph_icp) started from the chained poses, verified like a pair
     # and dropped when weak. false: poses are the chained pairs.
@@ -205,7 +205,7 @@ class PoseConfig:
 
     def joint_settings(self, flow_scale_px: float = 1.0, plane_scale: float = 1.0) -> SolverSettings:
         """[ours] The joint solve's terms (L_F + L_P) and step cap, each term in units of its typical residual
-        (``flow_scale_px``, ``plane_scale``: see :func:`taichi_gs.stages.pose_pair.add_joint`)."""
+        (``flow_scale_px``, ``plane_scale``: see :func:`taichi_gs.stages.pose.pair.add_joint`)."""
         return dataclasses.replace(
             self.solver_settings(with_all_terms=False), max_iterations=self.joint_iterations,
             flow_floor_px=flow_scale_px, plane_floor=plane_scale,
@@ -221,7 +221,7 @@ class PoseConfig:
         )
 
     def reliable_depth(self, depth: np.ndarray) -> np.ndarray:
-        """Mask of ``depth``'s pixels that clouds and ICP may use (:func:`taichi_gs.icp.reliable_depth_mask`)."""
+        """Mask of ``depth``'s pixels that clouds and ICP may use (:func:`taichi_gs.stages.pose.icp.reliable_depth_mask`)."""
         return reliable_depth_mask(depth, self.min_depth_m, self.max_depth_m, self.depth_edge_ratio)
 
     def pair_key(self) -> str:

@@ -10,11 +10,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..flow import to_gray_u8
-from ..icp import capped_voxel_down_sample, depth_cloud
-from ..pose_verify import frame_view
-from .pose_config import PoseConfig
-from .pose_pair import joint_normals
+from .config import PoseConfig
+from .flow import to_gray_u8
+from .icp import capped_voxel_down_sample, depth_cloud
+from .pair import joint_normals
+from .verify import frame_view
 
 if TYPE_CHECKING:
     import open3d as o3d

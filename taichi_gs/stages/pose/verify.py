@@ -27,10 +27,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from . import profiling
-from .geometry import backproject, project, transform
+from ... import profiling
+from ...geometry import backproject, project, transform
+from ...sampling import bilinear, bilinear_depth, nearest_pixel
 from .icp import reliable_depth_mask
-from .sampling import bilinear, bilinear_depth, nearest_pixel
 
 
 MEAN_BILINEAR_SQUARES = 4.0 / 9.0  # the mean of sum w^2 over uniform sub-pixel positions: (2/3)^2

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..sampling import bilinear, bilinear_depth, nearest_pixel
+from ...sampling import bilinear, bilinear_depth, nearest_pixel
 
 _TINY = 1e-12
 

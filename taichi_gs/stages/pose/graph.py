@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import profiling
-from .geometry import adjoint, invert, se3_exp, se3_log
+from ... import profiling
+from ...geometry import adjoint, invert, se3_exp, se3_log
 
 
 @dataclass

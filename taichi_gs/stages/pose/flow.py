@@ -18,10 +18,10 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from . import profiling
-from .errors import InputError
-from .geometry import backproject, project, transform
-from .io.atomic import atomic_path
+from ... import profiling
+from ...errors import InputError
+from ...geometry import backproject, project, transform
+from ...io.atomic import atomic_path
 
 FLOW_SUFFIXES = (".flo", ".npy")
 BACKWARD_SUFFIX = "_backward"

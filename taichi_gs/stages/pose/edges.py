@@ -1,5 +1,5 @@
 """[ours] Stage 1's pose graph: the pairs' edges, skip edges, loop closures and long edges (each verified like a
-pair), solved by :mod:`taichi_gs.pose_graph`."""
+pair), solved by :mod:`taichi_gs.stages.pose.graph`."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ from concurrent.futures import Executor
 
 import numpy as np
 
-from .. import profiling
-from ..geometry import invert
-from ..icp import align, depth_cloud, open3d, rgbd_odometry
-from ..io.jsonout import finite_or_null
-from ..pose_graph import Edge, optimise, rechoose
-from .pose_config import PoseConfig
-from .pose_frames import FrameCache
-from .pose_pair import (FROM_CONSTANT_VELOCITY, FROM_JOINT, Candidate, RelativePose, add_joint, choose, icp_levels,
-                        measured_flow, sample_pair, seeded_flows)
+from ... import profiling
+from ...geometry import invert
+from ...io.jsonout import finite_or_null
+from .config import PoseConfig
+from .frames import FrameCache
+from .graph import Edge, optimise, rechoose
+from .icp import align, depth_cloud, open3d, rgbd_odometry
+from .pair import (FROM_CONSTANT_VELOCITY, FROM_JOINT, Candidate, RelativePose, add_joint, choose, icp_levels,
+                   measured_flow, sample_pair, seeded_flows)
 
 
 def refine_with_graph(sequence, relatives: list[RelativePose], chained: np.ndarray, config: PoseConfig,
@@ -80,7 +80,7 @@ def _pair_edge(frames: FrameCache, i: int, transform: np.ndarray, estimate: str,
 def _near_tie_edges(i: int, relative: RelativePose, frames: FrameCache, config: PoseConfig) -> list[Edge]:
     """[ours] Pair i's other candidates that scored within ``verify_margin`` of its best (the constant-velocity
     guess aside) and lie more than ``graph_near_tie_mm`` from its chosen transform and from each other, as edges
-    like the pair's own (``graph_near_ties``; :func:`taichi_gs.pose_graph.rechoose` picks among them)."""
+    like the pair's own (``graph_near_ties``; :func:`taichi_gs.stages.pose.graph.rechoose` picks among them)."""
     scores = {name: c["score"] for name, c in relative.candidates.items()
               if c.get("score") is not None and "transform" in c}
     if not scores:
@@ -145,7 +145,7 @@ def _close(a: np.ndarray, b: np.ndarray, config: PoseConfig) -> np.ndarray:
 def _long_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
     """(i, i + k) for every span k in graph_long_spans and every graph_long_every-th frame i whose chained
     cameras are close (:func:`_close`)."""
-    every = config.graph_long_every  # at least 1: its rule in pose_config
+    every = config.graph_long_every  # at least 1: its rule in config.py
     return [(int(i), int(i) + k) for k in config.graph_long_spans if k < len(poses)
             for i in np.flatnonzero(_close(poses[:len(poses) - k:every], poses[k::every], config)) * every]
 

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from . import profiling
-from .geometry import backproject
+from ... import profiling
+from ...geometry import backproject
 
 if TYPE_CHECKING:
     import open3d as o3d

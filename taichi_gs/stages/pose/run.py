@@ -7,8 +7,8 @@ summary), and ``pairs/NNNNNN.json`` (per-pair cache, so a rerun skips finished p
 ``pairs_as_read/`` caches the pairs of the frames as read, and ``pairs/`` those of the de-skewed frames); the
 pipeline adds ``config.toml``.
 
-The stage's parts: its settings (``pose_config``), one pair's estimate (``pose_pair``), the window of frames
-(``pose_frames``) and the pose graph's edges (``pose_edges``); this module runs them over a sequence.
+The stage's parts: its settings (``config``), one pair's estimate (``pair``), the window of frames
+(``frames``) and the pose graph's edges (``edges``); this module runs them over a sequence.
 """
 
 from __future__ import annotations
@@ -26,27 +26,27 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import profiling
-from ..errors import InputError
-from ..flow import DISFlow, FileFlow, FlowProvider
-from ..geometry import invert
-from ..icp import depth_cloud, open3d
-from ..io.atomic import write_text
-from ..io import jsonout
-from ..io.ply import write_point_cloud
-from ..io.trajectory import write_tum
-from ..machine import available_cores
-from ..pose_graph import Edge
-from ..rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, stage_readout_ms
-from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
-from .pose_config import PRESETS, PoseConfig
-from .pose_edges import edge_record, refine_with_graph
-from .pose_frames import FrameCache
-from .pose_pair import (FROM_CONSTANT_VELOCITY, PairStart, RelativePose, estimate_relative_pose, fallback_pose,
-                        start_pair)
+from ... import profiling
+from ...errors import InputError
+from ...geometry import invert
+from ...io import jsonout
+from ...io.atomic import write_text
+from ...io.ply import write_point_cloud
+from ...io.trajectory import write_tum
+from ...machine import available_cores
+from ...rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, stage_readout_ms
+from ..declaration import StageContext, StageDeclaration, StageInputs, StageRun
+from .config import PRESETS, PoseConfig
+from .edges import edge_record, refine_with_graph
+from .flow import DISFlow, FileFlow, FlowProvider
+from .frames import FrameCache
+from .graph import Edge
+from .icp import depth_cloud, open3d
+from .pair import (FROM_CONSTANT_VELOCITY, PairStart, RelativePose, estimate_relative_pose, fallback_pose,
+                   start_pair)
 
 if TYPE_CHECKING:
-    from ..io.sequence import Sequence
+    from ...io.sequence import Sequence
 
 # What a degenerate pair may raise; anything else is a bug or bad input and ends the run.
 NUMERICAL_FAILURES = (np.linalg.LinAlgError, ArithmeticError)

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import se3_exp
-from .pose_losses import (PairSamples, Residuals, depth_consistency_residuals, flow_residuals, photometric_residuals,
-                          point_to_plane_residuals, warp)
+from ...geometry import se3_exp
+from .losses import (PairSamples, Residuals, depth_consistency_residuals, flow_residuals, photometric_residuals,
+                     point_to_plane_residuals, warp)
 
 
 @dataclass(frozen=True)

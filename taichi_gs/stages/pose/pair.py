@@ -14,15 +14,15 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from .. import profiling
-from ..flow import dis_flow, finite_flow, forward_backward_mask, rigid_flow, to_gray_u8
-from ..geometry import backproject, invert, se3_log
-from ..icp import ICPLevels, align, depth_cloud, prepare_icp, rgbd_odometry
-from ..io.jsonout import finite_or_null
-from ..pose_verify import FlowCheck, FrameView, Verification, depth_normals, flow_disagreement, frame_view, verify
-from .pose_config import PoseConfig
-from .pose_losses import PairSamples, flow_residuals, image_gradient, warp
-from .pose_solver import solve, typical_residuals
+from ... import profiling
+from ...geometry import backproject, invert, se3_log
+from ...io.jsonout import finite_or_null
+from .config import PoseConfig
+from .flow import dis_flow, finite_flow, forward_backward_mask, rigid_flow, to_gray_u8
+from .icp import ICPLevels, align, depth_cloud, prepare_icp, rgbd_odometry
+from .losses import PairSamples, flow_residuals, image_gradient, warp
+from .solver import solve, typical_residuals
+from .verify import FlowCheck, FrameView, Verification, depth_normals, flow_disagreement, frame_view, verify
 
 if TYPE_CHECKING:
     import open3d as o3d
@@ -98,14 +98,14 @@ def estimate_relative_pose(
     """Transform camera t -> t+1 minimising L_F, then L_F + l_I L_I + l_C L_C, then refined by ICP
     (and, with ``rgbd_refine``, by dense RGB-D odometry).
 
-    With ``verify`` (default) every candidate of the pair is scored by :func:`taichi_gs.pose_verify.verify`
+    With ``verify`` (default) every candidate of the pair is scored by :func:`taichi_gs.stages.pose.verify.verify`
     and the lowest score wins (see :func:`choose`); otherwise ICP replaces the flow estimate unless it
     fits poorly or jumps away. Without ``flow``, forward and backward DIS flows are computed. When that
     estimate is weak, the pair is redone with DIS flows seeded by the flow of a guessed motion
     (``prior``, the constant-velocity guess, if it moves; then a rejected but well-fitting ICP result,
     see :func:`_retry_seeds`); a retry replaces it if it is not weak (with ``verify``: if it scores
     lower). ``prior`` (default identity) itself is returned, flagged weak, when nothing aligns the pair.
-    ``views``: the two frames' :func:`taichi_gs.pose_verify.frame_view`, when already computed.
+    ``views``: the two frames' :func:`taichi_gs.stages.pose.verify.frame_view`, when already computed.
     ``ahead``: the pair's :func:`start_pair` on these flows and views, when it ran ahead (the flows are then
     not needed); the result is the same as without it.
     """
