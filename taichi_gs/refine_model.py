@@ -58,18 +58,19 @@ class DepthRefiner:
         return self.store.count
 
     def _depth_backward(self, target_depth: np.ndarray, cam_to_world: np.ndarray, weight: float,
-                        coverage_weight: float) -> tuple[float, float, np.ndarray]:
-        """Render one camera, add its weighted loss gradients to the Gaussians; (depth, coverage, dL/dpose)."""
+                        coverage_weight: float, row: int) -> tuple[float, float]:
+        """Render one camera (deferred), add its weighted loss gradients to the Gaussians and leave dL/dpose in
+        the rasterizer's pose row ``row``; (depth, coverage)."""
         view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height),
-                                       with_colour=False)
+                                       with_colour=False, deferred=True)
         host_copy.write(self.target_depth, target_depth)
         self.grad_depth.fill(0.0)
         self.grad_alpha.fill(0.0)
         depth, coverage = losses.normalised_depth_l1_and_coverage(
             view.depth, view.transmittance, self.target_depth, self.grad_depth, self.grad_alpha, self.min_alpha,
             weight, coverage_weight)
-        pose_grad = self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha)
-        return depth, coverage, pose_grad
+        self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha, pose_row=row)
+        return depth, coverage
 
     def step(self, target_depths: list[np.ndarray], cam_to_worlds: list[np.ndarray], lambda_depth: float,
              lambda_coverage: float, lambda_opacity: float,
@@ -78,10 +79,14 @@ class DepthRefiner:
 
         ``lrs`` maps each trained parameter name to its learning rate (missing names: 0)."""
         n = self.gaussians.n
-        self.gaussians.zero_grad()
         views = len(cam_to_worlds)
-        results = [self._depth_backward(d, T, lambda_depth / views, lambda_coverage / views)
-                   for d, T in zip(target_depths, cam_to_worlds)]
+        while True:  # again when a render's tile slots overflowed its buffers (they are grown: it fits the next time)
+            self.gaussians.zero_grad()
+            results = [self._depth_backward(d, T, lambda_depth / views, lambda_coverage / views, row)
+                       for row, (d, T) in enumerate(zip(target_depths, cam_to_worlds))]
+            pose_grads = self.rasterizer.pose_gradients(views)
+            if pose_grads is not None:
+                break
         # The method sums both losses; the depth term here is a mean over pixels, so the opacity
         # weight is divided by the pixel count to keep the method's balance between the two sums.
         opacity = losses.opacity_binarization(
@@ -90,7 +95,7 @@ class DepthRefiner:
         )
         self.store.step(lrs)
         depth, coverage = (float(np.mean([r[k] for r in results])) for k in (0, 1))
-        return {"depth": depth, "coverage": coverage, "opacity": opacity / max(n, 1)}, [r[2] for r in results]
+        return {"depth": depth, "coverage": coverage, "opacity": opacity / max(n, 1)}, list(pose_grads)
 
     def params(self) -> dict[str, np.ndarray]:
         """The trained parameters of the live Gaussians as NumPy."""
