@@ -151,6 +151,7 @@ class BlurScene:
         self.grad_depth = to_device(np.zeros((height, width), np.float32), dtype)
         self.sourced = sourced
         self.l1_pixels, self.ssim_pixels = loss_pixels(sourced, dtype)
+        self.loss_values = losses.LossValues(dtype)  # a step's loss values, read once per step
         padded = (height + 2 * warp_margin, width + 2 * warp_margin)
         self.padded_depth_target = to_device(np.zeros(padded, np.float32), dtype)
         self.padded_grad_depth = to_device(np.zeros(padded, np.float32), dtype)
@@ -232,24 +233,28 @@ class BlurScene:
         host_copy.write(self.frame, frame)
         fallback = median_depth(depth) if anchors > 0 and fallback_depth is None else fallback_depth
         while True:  # again when a render's tile slots overflowed its buffers (they are grown: it fits the next time)
-            exposure, l1, dssim, depth_l1, mse, grad_colour, grad_taus, pose_grads = self._forward_backward(
+            exposure, grad_colour, grad_taus, pose_grads = self._forward_backward(
                 depth, base, d_start, d_end, exposure_taus(k), lambda_dssim, lambda_depth, colour, anchors,
                 fallback, frozen, rows)
             if pose_grads is not None:
                 break
+        values = self.loss_values.read()
         g_start, g_end = exposure_pose_gradients(base, d_start, d_end, grad_taus, pose_grads)
         if rates is not None:
             if observe:
                 self.density.observe(self.store, virtual_pose(base, d_start, d_end, exposure.mid_tau), self.K[0, 0])
             self.store.step(vars(rates))
-        return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
-                        g_start, g_end, grad_colour)
+        return BlurStep({"l1": values["l1"], "dssim": values["dssim"], "depth": values.get("depth", 0.0)},
+                        float(-10 * np.log10(max(values["mse"], 1e-12))), g_start, g_end, grad_colour)
 
     def _forward_backward(self, depth, base, d_start, d_end, taus, lambda_dssim, lambda_depth, colour, anchors,
                           fallback, frozen, rows) -> tuple:
-        """One pass of :meth:`step` up to the Gaussians' and the poses' gradients, its renders deferred: (exposure,
-        l1, dssim, depth L1, clipped MSE, colour gradient, exposure fractions, pose gradients), the pose gradients
-        None when a render's tile slots overflowed (then the rest is void and the pass must be run again)."""
+        """One pass of :meth:`step` up to the Gaussians' and the poses' gradients, its renders deferred, its loss
+        values left in :attr:`loss_values`: (exposure, colour gradient, exposure fractions, pose gradients), the
+        pose gradients None when a render's tile slots overflowed (then the rest is void and the pass must be run
+        again)."""
+        values = self.loss_values
+        values.clear()
         if anchors > 0:
             exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen, rows,
                                        deferred=True)
@@ -260,20 +265,22 @@ class BlurScene:
             affine.forward(self.blurred, colour, self.compensated)
             predicted, grad_predicted = self.compensated, self.grad_compensated
         grad_predicted.fill(0.0)
-        l1, mse = losses.l1_and_clipped_mse(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim,
-                                            mask=self.l1_pixels)
-        dssim = losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim, mask=self.ssim_pixels)
+        losses.l1_and_clipped_mse(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim,
+                                  mask=self.l1_pixels, into=values.at("l1", "mse"))
+        losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim, mask=self.ssim_pixels,
+                     into=values.at("dssim"))
         grad_colour = None
         if colour is not None:
             grad_colour = affine.backward(self.blurred, colour, self.grad_compensated, self.grad_blur)
-        depth_l1, grad_depth = 0.0, None
+        grad_depth = None
         if lambda_depth > 0:
             target, grad_depth = exposure.depth_buffers(depth)
-            depth_l1 = losses.masked_depth_l1(exposure.mid_view.depth, target, grad_depth, weight=lambda_depth)
+            losses.masked_depth_l1(exposure.mid_view.depth, target, grad_depth, weight=lambda_depth,
+                                   into=values.at("depth"))
         if frozen is None:
             self.gaussians.zero_grad()
         grad_taus, pose_grads = exposure.backward(self.grad_blur, grad_depth)
-        return exposure, l1, dssim, depth_l1, mse, grad_colour, grad_taus, pose_grads
+        return exposure, grad_colour, grad_taus, pose_grads
 
     def error_mass(self, frame: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int,
                    colour: np.ndarray | None = None) -> np.ndarray:
