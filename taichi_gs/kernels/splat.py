@@ -287,6 +287,37 @@ def _kernels(dt) -> SimpleNamespace:
     )
 
 
+@functools.cache
+def _zero_kernel(dt):
+    """One launch that zeroes five arrays of any rank (the Gaussians' gradient buffers), row by row."""
+
+    @ti.func
+    def zero_row(a: ti.template(), r):
+        if r < a.shape[0]:  # the rank's loops inside (compiled per rank): no integer division per element
+            if ti.static(len(a.shape) == 1):
+                a[r] = 0.0
+            elif ti.static(len(a.shape) == 2):
+                for c in range(a.shape[1]):
+                    a[r, c] = 0.0
+            else:
+                for i in range(a.shape[1]):
+                    for j in range(a.shape[2]):
+                        a[r, i, j] = 0.0
+
+    arr = ti.types.ndarray(dtype=dt)
+
+    @ti.kernel
+    def zero_rows(a0: arr, a1: arr, a2: arr, a3: arr, a4: arr, rows: ti.i32):
+        for r in range(rows):
+            zero_row(a0, r)
+            zero_row(a1, r)
+            zero_row(a2, r)
+            zero_row(a3, r)
+            zero_row(a4, r)
+
+    return zero_rows
+
+
 def _grown(arr, need: int, dtype, tail: tuple = ()):
     """``arr`` if it holds ``need`` rows, else a new ndarray with 1.5x headroom (less where the
     device's per-buffer limit says so; :class:`BackendError` when ``need`` rows exceed it)."""
@@ -369,9 +400,9 @@ class DeviceGaussians:
         return {k: host_copy.read(v, self.n) for k, v in source.items()}
 
     def zero_grad(self) -> None:
-        """Reset every gradient buffer to 0."""
-        for g in self.grads.values():
-            g.fill(0.0)
+        """Reset every gradient buffer to 0 (one launch)."""
+        grads = list(self.grads.values())
+        _zero_kernel(self.dtype)(*grads, max(g.shape[0] for g in grads))
 
 
 @dataclass
