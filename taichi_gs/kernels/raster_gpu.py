@@ -89,31 +89,25 @@ def make(dt) -> SimpleNamespace:
             ids[g] = g
 
     @ti.kernel
-    def slot_offsets(
-        n: ti.i32,
-        order: ind(1),  # (N,) Gaussian ids in depth order
-        rect: ind(2),  # (N, 4)
-        counts: ind(1),  # output (N,): tiles touched by order[i]
-        offsets: ind(1),  # output (N + 1,): exclusive scan of counts, offsets[N] = the slot count
-        work: ind(1),  # (>= scan.scan_work_size(N),) scan levels
-    ):
-        for i in range(n):
-            counts[i] = tiles.tile_count(rect, order[i])
-        scan_f.scan_levels(counts, 0, offsets, 0, work, 0, n)
-
-    @ti.kernel
-    def emit_slots(
+    def bin_slots(
         n: ti.i32,
         cap: ti.i32,  # C: slots the buffers hold (the view overflows, and renders nothing, when S > C)
         n_tiles: ti.i32,
         tiles_x: ti.i32,
-        order: ind(1),  # (N,) depth order
+        order: ind(1),  # (N,) Gaussian ids in depth order
         rect: ind(2),  # (N, 4)
-        offsets: ind(1),  # (N + 1,) from slot_offsets
-        tile_keys: ind(1),  # output (C,) tile id of each slot; n_tiles (sorted last) past the S slots
+        counts: ind(1),  # output (N,): tiles touched by order[i]
+        offsets: ind(1),  # output (N + 1,): exclusive scan of counts, offsets[N] = the slot count S
+        work: ind(1),  # (>= scan.scan_work_size(N),) scan levels
+        tile_keys: ind(1),  # output (C,) tile id of each slot; past the S slots the last tile's (sorted after its own)
         slot_ids: ind(1),  # output (C,) 0 .. C-1
         slot_gid: ind(1),  # output (C,) Gaussian id of each slot
+        levels: ti.template(),  # scan.scan_levels_for(N)
     ):
+        """Slot offsets (each Gaussian's tile count, scanned), then each Gaussian's slots in depth order."""
+        for i in range(n):
+            counts[i] = tiles.tile_count(rect, order[i])
+        scan_f.scan_levels(counts, 0, offsets, 0, work, 0, n, levels)
         for i in range(n):
             g = order[i]
             if offsets[n] <= cap and rect[g, 0] <= rect[g, 2]:
@@ -127,30 +121,33 @@ def make(dt) -> SimpleNamespace:
                         s += 1
         for s in range(cap):
             if s >= ti.select(offsets[n] <= cap, offsets[n], 0):
-                tile_keys[s] = n_tiles
+                tile_keys[s] = n_tiles - 1
                 slot_ids[s] = s
                 slot_gid[s] = 0
 
     @ti.kernel
     def ranges_and_gather(
-        n_slots: ti.i32,
+        n_slots: ti.i32,  # C
         n_tiles: ti.i32,
-        sorted_tiles: ind(1),  # (S,) tile ids, sorted (n_tiles: no slot)
-        order: ind(1),  # (S,) slot ids in the same order
+        sorted_tiles: ind(1),  # (C,) tile ids, sorted
+        order: ind(1),  # (C,) slot ids in the same order (those from S on are no slot: after their tile's slots)
         slot_gid: ind(1),  # (S,)
         proj: fnd(2),  # (N, P_WIDTH)
         rect: ind(2),  # (N, 4)
         tile_range: ind(2),  # output (T, 2): [start, end) of each tile's records, [0, 0) if none
         entries: fnd(2),  # output (S, E_WIDTH): records in tile order
+        offsets: ind(1),  # (N + 1,) from slot_offsets: S = offsets[N] (0 when it overflowed C)
+        n: ti.i32,  # N
     ):
         for t, end in ti.ndrange(n_tiles, 2):
             tile_range[t, end] = 0
         for j in range(n_slots):
-            t = sorted_tiles[j]
-            if t < n_tiles:
+            live = ti.select(offsets[n] <= n_slots, offsets[n], 0)
+            if order[j] < live:
+                t = sorted_tiles[j]
                 if j == 0 or sorted_tiles[j - 1] != t:
                     tile_range[t, 0] = j
-                if j == n_slots - 1 or sorted_tiles[j + 1] != t:
+                if j == n_slots - 1 or sorted_tiles[j + 1] != t or order[j + 1] >= live:
                     tile_range[t, 1] = j + 1
                 blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
 
@@ -413,9 +410,9 @@ def make(dt) -> SimpleNamespace:
                     dst[dst_row, 7] = ti.cast(offsets[n_gaussians] > cap, dt)
 
     return SimpleNamespace(
-        project_keys=project_keys, slot_offsets=slot_offsets, emit_slots=emit_slots,
-        ranges_and_gather=ranges_and_gather, blend_forward=blend_forward, blend_backward=blend_backward,
-        gaussian_backward=gaussian_backward, sum_rows=sum_rows,
+        project_keys=project_keys, bin_slots=bin_slots, ranges_and_gather=ranges_and_gather,
+        blend_forward=blend_forward, blend_backward=blend_backward, gaussian_backward=gaussian_backward,
+        sum_rows=sum_rows,
     )
 
 
@@ -444,21 +441,20 @@ class GpuPipeline:
             cam, intr, width, height, view.proj, view.rect, keys, ids, gaussians.isotropic, gaussians.view_dependent,
         )
         _, view.depth_order = scan.radix_sort(keys, ids, n, DEPTH_KEY_BITS, s, "depth_sort")
-        view.depth_offsets = s.get("offsets", n + 1)
-        self.k.slot_offsets(n, view.depth_order, view.rect, s.get("counts", n), view.depth_offsets,
-                            s.get("scan_work", scan.scan_work_size(n)))
         clock("project")
+        view.depth_offsets = s.get("offsets", n + 1)
         tiles_x, tiles_y = tiles.tile_grid(width, height)
         n_tiles = tiles_x * tiles_y
         tile_keys, slot_ids, view.slot_gid = s.get("tile_keys", cap), s.get("slot_ids", cap), s.get("slot_gid", cap)
-        self.k.emit_slots(n, cap, n_tiles, tiles_x, view.depth_order, view.rect, view.depth_offsets, tile_keys,
-                          slot_ids, view.slot_gid)
-        tile_bits = max(1, int(n_tiles).bit_length())  # n_tiles itself marks the unused slots
+        self.k.bin_slots(n, cap, n_tiles, tiles_x, view.depth_order, view.rect, s.get("counts", n), view.depth_offsets,
+                         s.get("scan_work", scan.scan_work_size(n)), tile_keys, slot_ids, view.slot_gid,
+                         scan.scan_levels_for(n))
+        tile_bits = max(1, int(n_tiles - 1).bit_length())
         sorted_tiles, view.order = scan.radix_sort(tile_keys, slot_ids, cap, tile_bits, s, "tile_sort")
         view.tile_range = s.get("tile_range", n_tiles, ti.i32, (2,))
         view.entries = s.get("entries", cap, self.dtype, (E_WIDTH,))
         self.k.ranges_and_gather(cap, n_tiles, sorted_tiles, view.order, view.slot_gid, view.proj, view.rect,
-                                 view.tile_range, view.entries)
+                                 view.tile_range, view.entries, view.depth_offsets, n)
         clock("sort")
         self.k.blend_forward(tiles_x, n_tiles, width, height, view.tile_range, view.entries, bg,
                              view.rgb, view.depth, view.transmittance, view.last)
@@ -486,7 +482,7 @@ class GpuPipeline:
             gaussians.view_dependent,
         )
         level, count = 0, n
-        while True:
+        while True:  # one launch per level of 256-row block sums (2 up to 65,536 Gaussians)
             n_out = max(1, -(-count // POSE_BLOCK))
             last = n_out == 1
             out = pose_out if last else s.get(f"pose_rows{level + 1}", n_out, self.dtype, (6,))
