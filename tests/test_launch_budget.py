@@ -197,3 +197,13 @@ def test_gpu_scans_take_the_levels_their_size_needs():
     assert [scan.scan_levels_for(n) for n in (0, 255, 256, 65_279, 65_280, 2**31 - 1)] == [1, 1, 2, 2, 3, 4]
     assert scan.scan_levels_for(scan.digit_table_size(260_096)) == 2
     assert scan.scan_levels_for(scan.digit_table_size(260_097)) == 3
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(ARCH != "vulkan", reason="set TAICHI_GS_ARCH=vulkan (after `source scripts/vulkan.sh`) to run")
+def test_vulkan_deferred_renders_rerun_after_an_overflow():
+    """tests/test_deferred_render.py on the GPU path (its own process, on the backend this one runs)."""
+    done = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                           str(Path(__file__).with_name("test_deferred_render.py"))],
+                          check=False, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout[-3000:]

@@ -7,9 +7,11 @@ forward
   1. project every Gaussian (one thread each); key = its depth's f32 bit pattern (monotone for
      depth > 0), value = its index; LSD radix sort of the N pairs (4 passes of 8 bits);
   2. per depth-sorted Gaussian, its tile count, then (same launch) an exclusive multi-level
-     scan -> slot offsets (no atomics); each Gaussian writes its slots' tile ids in depth order; a
-     stable radix sort by tile id (1-2 passes) leaves every tile's slots front to back, ties broken
-     by Gaussian index (the CPU order); tile ranges come from neighbouring keys; records are
+     scan -> slot offsets (no atomics) and each Gaussian's slots' tile ids in depth order, in buffers
+     of the Rasterizer's slot capacity C (the count S stays on the device; the C - S unused slots are
+     keyed to the last tile, after its own; S > C: no slots, the view renders nothing); a stable
+     radix sort by tile id (1-2 passes) of the C slots leaves every tile's slots front to back, ties
+     broken by Gaussian index (the CPU order); tile ranges come from neighbouring keys; records are
      gathered tile-ordered; each scan and each whole radix sort is one kernel launch;
   3. blend: one 256-thread block per 16x16 tile, one thread per pixel, the tile's records loaded
      in batches of 256 into shared memory between ``block.sync()``s, per-pixel state in
@@ -22,7 +24,8 @@ backward
      slot's row (Taichi 1.7's SPIR-V backend has no float atomics on shared memory, so there is
      no shared-memory pre-reduction yet: see docs/notebook/benchmarks-2026-11.md, "GPU kernels (block per tile)");
   5. per Gaussian (one thread each, depth order): sum of its slots' rows, projection backward,
-     its pose term; the pose terms are summed by a multi-level block reduction.
+     its pose term; the pose terms are summed by a multi-level block reduction (a launch per level)
+     into the view's pose row, with S and whether S > C.
 """
 
 import functools
