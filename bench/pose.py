@@ -79,7 +79,7 @@ from taichi_gs.evaluate import ate, match_by_time, trajectory_errors
 from taichi_gs.flow import dis_flow, to_gray_u8
 from taichi_gs.geometry import backproject, invert, so3_log
 from taichi_gs.icp import align, depth_cloud, rgbd_odometry
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import read_tum
 from taichi_gs.pose_verify import frame_view, verify
 from taichi_gs.stages.pose import PRESETS as POSE_PRESETS

@@ -21,7 +21,7 @@ import numpy as np
 
 from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
 from taichi_gs.stages.refine import FAST_TRAINING_PER_FRAME, PRESETS, run_refine
 from taichi_gs.stages.refine_accept import accept_refined_poses

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from taichi_gs.io.sequence import interpolate_poses
+from taichi_gs.io.trajectory import interpolate_poses
 from taichi_gs.io.trajectory import read_tum_rows, tum_rows_to_poses, write_tum
 
 WINDOW = 15  # frames either side of a frame whose stamps the line is fitted through

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from taichi_gs.flow import dis_flow  # noqa: E402
 from taichi_gs.geometry import so3_exp, so3_log  # noqa: E402
-from taichi_gs.io.sequence import load_sequence  # noqa: E402
+from taichi_gs.io.load import load_sequence  # noqa: E402
 
 BAND_DISTANCE = 2.0 / 3.0  # between the centres of the top and bottom thirds, as a share of the image height
 MIN_POINTS = 200

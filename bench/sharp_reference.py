@@ -41,7 +41,8 @@ import numpy as np
 from taichi_gs.evaluate import psnr, rotation_angle_deg, ssim
 from taichi_gs.icp import align, depth_cloud
 from taichi_gs.io.jsonout import write_json
-from taichi_gs.io.sequence import Sequence, load_sequence, read_color
+from taichi_gs.io.load import load_sequence
+from taichi_gs.io.sequence import Sequence, read_color
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.noreference import gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from taichi_gs.plots import image_grid

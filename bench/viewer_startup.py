@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from taichi_gs.io.ply import write_splats
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import write_tum
 from taichi_gs.pipeline import write_run_info
 from taichi_gs.splats import splats_from_points

@@ -7,8 +7,6 @@ import numpy as np
 
 from .geometry import interpolate, pose_from_rt
 
-PATHS = ("orbit", "trajectory")
-
 
 def trajectory_path(poses: np.ndarray, count: int) -> np.ndarray:
     """``count`` poses spread evenly along the trajectory (SE(3) interpolation between frames)."""

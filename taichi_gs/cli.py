@@ -9,7 +9,6 @@ import platform
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Optional, TypeVar
 
@@ -17,8 +16,26 @@ import typer
 from rich.markup import escape
 
 from . import __version__
-from .cli_options import CommandGroup, parse_holdout, state
+from .choices import (
+    ARCH_CHOICES,
+    BLUR_LEVELS,
+    EXPORT_FORMATS,
+    PRESET_NAMES,
+    RENDER_PATHS,
+    SCENES,
+    TRAJECTORIES,
+)
+from .cli_options import (
+    AS_FOUND,
+    CommandGroup,
+    InputOptions,
+    choices,
+    parse_holdout,
+    state,
+    with_input_options,
+)
 from .errors import BackendError, DivergenceError, InputError
+from .stages.declaration import STAGE_NAMES
 from .terminal import Verbosity, configure_logging, console, progress_bar
 
 app = typer.Typer(
@@ -36,12 +53,7 @@ MAX_SYNTH_FRAMES = 10_000
 MAX_SYNTH_SIZE = 4096
 
 
-class Arch(str, Enum):
-    auto = "auto"
-    cpu = "cpu"
-    cuda = "cuda"
-    vulkan = "vulkan"
-    metal = "metal"
+Arch = choices("Arch", ARCH_CHOICES)
 
 
 def _fail(message: str, code: int) -> None:
@@ -149,23 +161,9 @@ def info() -> None:
         typer.echo(f"{key:15s} {value}")
 
 
-class SynthTrajectory(str, Enum):
-    translation = "translation"
-    turn = "turn"
-    handheld = "handheld"
-
-
-class SynthScene(str, Enum):
-    room = "room"
-    office = "office"
-    plain = "plain"
-    corridor = "corridor"
-
-
-class SynthBlur(str, Enum):
-    none = "none"
-    moderate = "moderate"
-    extreme = "extreme"
+SynthTrajectory = choices("SynthTrajectory", TRAJECTORIES)
+SynthScene = choices("SynthScene", SCENES)
+SynthBlur = choices("SynthBlur", BLUR_LEVELS)
 
 
 @app.command()
@@ -253,21 +251,8 @@ def eval_(
         console.print(f"wrote {run_dir / 'metrics.json'} and plots in {run_dir / 'report'}", highlight=False)
 
 
-def _intrinsics_override(fx, fy, cx, cy, depth_scale):
-    from .io.sequence import IntrinsicsOverride
-
-    return IntrinsicsOverride(fx=fx, fy=fy, cx=cx, cy=cy, depth_scale=depth_scale)
-
-
-class Preset(str, Enum):
-    fast = "fast"
-    paper = "paper"
-
-
-class Stage(str, Enum):
-    pose = "pose"
-    refine = "refine"
-    deblur = "deblur"
+Preset = choices("Preset", PRESET_NAMES)
+Stage = choices("Stage", STAGE_NAMES)
 
 
 PresetOption = Annotated[Preset, typer.Option(help=(
@@ -276,24 +261,9 @@ PresetOption = Annotated[Preset, typer.Option(help=(
     "method exactly, its schedules and none of our additions (DIS in place of Unimatch)."))]
 
 
-FxOption = Annotated[Optional[float], typer.Option("--fx", help="Focal length x (px); wins over intrinsics.json.")]
-FyOption = Annotated[Optional[float], typer.Option("--fy", help="Focal length y (px).")]
-CxOption = Annotated[Optional[float], typer.Option("--cx", help="Principal point x (px).")]
-CyOption = Annotated[Optional[float], typer.Option("--cy", help="Principal point y (px).")]
-DepthScaleOption = Annotated[Optional[float], typer.Option("--depth-scale", help="Depth PNG units per metre (TUM: 5000).")]
 ConfigOption = Annotated[Optional[Path], typer.Option("--config", help="TOML file with \\[pose], \\[refine], \\[deblur] tables.")]
-TrustDepthOption = Annotated[bool, typer.Option(
-    "--trust-depth-scale", help="Accept a median depth outside 0.25-6 m (the indoor check of the depth scale).")]
-TimeToleranceOption = Annotated[Optional[float], typer.Option(
-    "--time-tolerance", min=0.0, help="TUM layout: max seconds between associated colour and depth (default 0.02).")]
-FormatOption = Annotated[Optional[str], typer.Option("--format", help="Input layout (default: detected): taichi-gs | tum | 7scenes | scannet | replica | stray.")]
-CameraOption = Annotated[Optional[str], typer.Option("--camera", help="TUM: fr1 | fr2 | fr3 (intrinsics and distortion; default from the folder name). 7-Scenes: registered (default: depth moved into the colour camera) | shipped (colour and depth as one camera, as distributed).")]
-EveryOption = Annotated[int, typer.Option("--every", min=1, help="Keep every N-th frame.")]
-FirstOption = Annotated[int, typer.Option("--first", min=0, help="Start at this frame of the sequence as read (counted from 0; TUM: after colour-depth association).")]
-CountOption = Annotated[int, typer.Option("--count", min=0, help="Keep this many frames (after --every; 0: to the end).")]
 ProfileOption = Annotated[bool, typer.Option("--profile", help="Write OUT/profile.json and OUT/profile.md: wall and "
                                           "CPU seconds per stage and per kind of work (flow, ICP, renders, losses, ...).")]
-ScaleOption = Annotated[float, typer.Option("--scale", help="Read frames at S times their width and height (0.5: half).")]
 READOUT_STAGES = ("pose", "refine", "deblur")  # the sections a rolling shutter's --readout-ms sets
 StageConfig = TypeVar("StageConfig")
 ReadoutOption = Annotated[Optional[float], typer.Option("--readout-ms", min=0.0, help="Rolling shutter: the camera reads its rows top to bottom over this many ms (0: a global shutter; default: the preset's, which in fast is 25 for TUM fr1 and 7-Scenes (Kinect v1) and 0 otherwise).")]
@@ -306,28 +276,16 @@ def with_readout(config: StageConfig, readout_ms: float | None) -> StageConfig:
     return dataclasses.replace(config, readout_ms=readout_ms, camera_readout=False)
 
 
-def _open_input(folder: Path, fx, fy, cx, cy, depth_scale, format: str | None, camera: str | None, every: int,
-                scale: float, time_tolerance: float | None, trust_depth_scale: bool, first: int, count: int):
-    from .io.sequence import load_sequence
-
-    return load_sequence(folder, _intrinsics_override(fx, fy, cx, cy, depth_scale), time_tolerance, trust_depth_scale,
-                         format=format, camera=camera, every=every, scale=scale, first=first, count=count)
-
-
 @app.command()
 @handles_errors
+@with_input_options
 def pose(
     folder: Annotated[Path, typer.Argument(help="Input sequence folder (TUM or taichi-gs layout).")],
     out: Annotated[Path, typer.Option("--out", help="Output folder; results go to OUT/pose/.")],
     flow_dir: Annotated[Optional[Path], typer.Option(help="Precomputed flows (.flo or .npy, one per pair).")] = None,
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
-    fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
-    depth_scale: DepthScaleOption = None,
-    trust_depth_scale: TrustDepthOption = False,
-    time_tolerance: TimeToleranceOption = None,
-    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
-    first: FirstOption = 0, count: CountOption = 0,
+    reading: InputOptions = AS_FOUND,
     readout_ms: ReadoutOption = None,
     profile: ProfileOption = False,
 ) -> None:
@@ -342,27 +300,22 @@ def pose(
     validate_sections({"pose": config})
     if flow_dir is not None:
         config = dataclasses.replace(config, flow_dir=str(flow_dir))
-    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
-                           trust_depth_scale, first, count)
+    sequence = reading.load(folder)
     _init_backend()
-    with output_lock(out), _profiled(profile, out):
+    with output_lock(out), _profiled(profile, out) as threads:
         check_run_input(out, sequence)
         write_run_info(out, sequence)
-        summary = pipeline.run_stage("pose", sequence, out, config, progress_bar)  # --profile wraps it
+        summary = pipeline.run_stage("pose", sequence, out, config, progress_bar, threads=threads)
     console.print(f"stage 1 done: {summary}; results in {out / 'pose'}")
 
 
 @app.command("import")
 @handles_errors
+@with_input_options
 def import_(
     folder: Annotated[Path, typer.Argument(help="Input sequence folder, any readable layout (see --format).")],
     out: Annotated[Path, typer.Option("--out", help="New folder to write the taichi-gs layout into.")],
-    fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
-    depth_scale: DepthScaleOption = None,
-    trust_depth_scale: TrustDepthOption = False,
-    time_tolerance: TimeToleranceOption = None,
-    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
-    first: FirstOption = 0, count: CountOption = 0,
+    reading: InputOptions = AS_FOUND,
     average: Annotated[int, typer.Option("--average", min=1, help=(
         "Average each W consecutive frames (W odd) in linear light into one long exposure: real motion blur "
         "whose sharp reference (sharp/), depth, time and pose are the centre frame's; --count counts the "
@@ -373,8 +326,7 @@ def import_(
     from .io.convert import import_sequence
 
     _check_output_folder(folder, out)
-    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
-                           trust_depth_scale, first, count * average)
+    sequence = dataclasses.replace(reading, count=reading.count * average).load(folder)
     if average > 1:
         sequence = AveragedSequence(sequence, average)
     with progress_bar("import", len(sequence)) as update:
@@ -412,18 +364,14 @@ def refine(
 
 @app.command()
 @handles_errors
+@with_input_options
 def reconstruct(
     folder: Annotated[Path, typer.Argument(help="Input sequence folder (TUM or taichi-gs layout).")],
     out: Annotated[Path, typer.Option("--out", help="Output folder (pose/, refine/, deblur/, config.toml).")],
     preset: PresetOption = Preset.fast,
     config_file: ConfigOption = None,
     force: Annotated[Optional[Stage], typer.Option(help="Rerun from this stage on.")] = None,
-    fx: FxOption = None, fy: FyOption = None, cx: CxOption = None, cy: CyOption = None,
-    depth_scale: DepthScaleOption = None,
-    trust_depth_scale: TrustDepthOption = False,
-    time_tolerance: TimeToleranceOption = None,
-    format: FormatOption = None, camera: CameraOption = None, every: EveryOption = 1, scale: ScaleOption = 1.0,
-    first: FirstOption = 0, count: CountOption = 0,
+    reading: InputOptions = AS_FOUND,
     readout_ms: ReadoutOption = None,
     profile: ProfileOption = False,
 ) -> None:
@@ -437,8 +385,7 @@ def reconstruct(
     sections = {name: with_readout(section, readout_ms) if name in READOUT_STAGES else section
                 for name, section in resolve_sections(preset.value, config_file).items()}
     validate_sections(sections)
-    sequence = _open_input(folder, fx, fy, cx, cy, depth_scale, format, camera, every, scale, time_tolerance,
-                           trust_depth_scale, first, count)
+    sequence = reading.load(folder)
     sequence.check_all()
     _init_backend()
 
@@ -446,15 +393,14 @@ def reconstruct(
         verb = "done" if stage.ran else "already done, skipped"
         console.print(f"{stage.stage}: {verb} ({stage.summary}; {stage.seconds:.1f} s)", highlight=False)
 
-    with output_lock(out), _profiled(profile, out):
-        run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report)
+    with output_lock(out), _profiled(profile, out) as threads:
+        run_all(sequence, out, sections, progress_bar, force=None if force is None else force.value, on_stage=report,
+                threads=threads)
     console.print(f"finished: results in {out}/deblur (splats.ply, renders/, grid.png); "
                   f"next: 'taichi-gs eval {out}' for metrics and plots in {out}/report", highlight=False)
 
 
-class PathKind(str, Enum):
-    orbit = "orbit"
-    trajectory = "trajectory"
+PathKind = choices("PathKind", RENDER_PATHS)
 
 
 @app.command()
@@ -477,12 +423,7 @@ def render(
     console.print(f"wrote {frames} views to {target} and {target}.gif")
 
 
-class ExportFormat(str, Enum):
-    nerfstudio = "nerfstudio"
-    colmap = "colmap"
-    ply = "ply"
-    gs3d = "3dgs"
-    mesh = "mesh"
+ExportFormat = choices("ExportFormat", EXPORT_FORMATS)
 
 
 @app.command()
@@ -504,16 +445,15 @@ def export(
     if dest.resolve() == out.resolve() or any(dest.resolve() == (out / stage).resolve() for stage in STAGES):
         raise InputError(dest, "would overwrite the run's own results", "give a --dest outside the stage folders")
     with output_lock(out):
-        if format is ExportFormat.ply:
+        if format.value == "ply":
             written = export_ply(out, dest)
-        elif format is ExportFormat.mesh:
+        elif format.value == "mesh":
             from .mesh import export_mesh
 
             with progress_bar("TSDF fusion", len(sequence)) as update:
                 written = export_mesh(out, sequence, dest, voxel_size, progress=lambda done, total: update(done, total))
         else:
-            exporter = {ExportFormat.nerfstudio: export_nerfstudio, ExportFormat.colmap: export_colmap,
-                        ExportFormat.gs3d: export_3dgs}[format]
+            exporter = {"nerfstudio": export_nerfstudio, "colmap": export_colmap, "3dgs": export_3dgs}[format.value]
             written = exporter(out, sequence, dest)
     console.print(f"exported {format.value} to {written}")
 
@@ -576,16 +516,22 @@ def deblur(
 
 
 @contextmanager
-def _profiled(profile: bool, out: Path) -> Iterator[None]:
-    """With ``profile``, time the enclosed stages' work and write OUT/profile.json and OUT/profile.md."""
+def _profiled(profile: bool, out: Path) -> Iterator[int | None]:
+    """With ``profile``, time the enclosed stages' work and write OUT/profile.json and OUT/profile.md. Yields
+    the stages' thread count: one when profiled (stage 1's sections then do not overlap), else None (their
+    configs')."""
     if not profile:
-        yield
+        yield None
         return
     from . import profiling
+    from .kernels.splat import sync
 
-    profiler = profiling.Profiler()
+    profiler = profiling.Profiler(sync=sync)
     profiling.install(profiler)
-    yield
+    try:
+        yield 1
+    finally:
+        profiling.uninstall()
     paths = profiling.write(profiler, out)
     console.print(f"profile: {paths[1]}", highlight=False)
 

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import profiling
 from .density import DensityControl
 from .gaussian_store import FIELDS, GaussianStore, morton_order
 from .geometry import (
@@ -207,6 +208,7 @@ class BlurScene:
         K[1, 2] += m
         return Camera(K, cam_to_world, self.width + 2 * m, self.height + 2 * m)
 
+    @profiling.timed("step host work (uploads, fills)")
     def step(self, frame: np.ndarray, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
              k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None,
              colour: np.ndarray | None = None, anchors: int = 0, fallback_depth: float | None = None,

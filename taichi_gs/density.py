@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import profiling
 from .gaussian_store import GaussianStore
 from .geometry import quat_to_rotmat
 from .render import density_stats
@@ -66,6 +67,7 @@ class DensityControl:
         self.grad_sum = np.zeros(count)
         self.grad_count = np.zeros(count)
 
+    @profiling.timed("densification statistics")
     def observe(self, store: GaussianStore, cam_to_world: np.ndarray, focal: float) -> None:
         """Add each Gaussian's positional gradient of this step, in image-plane pixels (|g| z / f)."""
         params, grads = store.gaussians.params, store.gaussians.grads
@@ -94,6 +96,7 @@ class DensityControl:
         if schedule.reset_opacity_every and done % schedule.reset_opacity_every == 0 and done < schedule.densify_until:
             reset_opacity(store, RESET_OPACITY)
 
+    @profiling.timed("densify / prune / fill")
     def densify_and_prune(self, store: GaussianStore, grad_threshold_px: float, split_scale: float | np.ndarray,
                           min_opacity: float, max_scale: float, max_gaussians: int,
                           rng: np.random.Generator, also: np.ndarray | None = None) -> tuple[int, int]:

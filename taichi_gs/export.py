@@ -16,17 +16,17 @@ import imageio.v3 as iio
 import numpy as np
 
 from .camera_paths import orbit_path, trajectory_path
+from .choices import RENDER_PATHS
 from .errors import InputError
 from .geometry import intrinsics_matrix, invert, rotmat_to_quat
-from .io.atomic import atomic_path, write_text
 from .io import jsonout
+from .io.atomic import atomic_path, write_text
 from .io.images import encode_depth, to_uint8, write_png
 from .io.ply import read_point_cloud, read_splats, write_splats
 from .io.sequence import Sequence
 from .io.trajectory import read_tum
 from .pipeline import STAGES, read_done
 
-FORMATS = ("nerfstudio", "colmap", "ply", "3dgs")
 DEPTH_PNG_UNITS_PER_METRE = 1000.0  # exported depth: uint16 millimetres
 REFERENCE_SH_DEGREE = 3  # what the reference 3DGS loader asserts
 # OpenCV camera axes (x right, y down, z forward) -> OpenGL/nerfstudio axes (x right, y up, z back).
@@ -206,6 +206,8 @@ def render_path(run_dir: Path, sequence: Sequence, path: str, count: int, scale:
     RUN_DIR/render/PATH/NNNNNN.png and RUN_DIR/render/PATH.gif; returns the PNG folder."""
     from .render import render_views
 
+    if path not in RENDER_PATHS:
+        raise ValueError(f"unknown camera path {path!r}: choose one of {', '.join(RENDER_PATHS)}")
     splat_path = newest_splats_path(run_dir)
     if splat_path is None:
         raise InputError(run_dir, "no splats.ply in deblur/ or refine/", "run 'taichi-gs reconstruct' first")

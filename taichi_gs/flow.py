@@ -18,6 +18,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from . import profiling
 from .errors import InputError
 from .geometry import backproject, project, transform
 from .io.atomic import atomic_path
@@ -44,6 +45,7 @@ def to_gray_u8(color: np.ndarray) -> np.ndarray:
     return np.clip(np.round(gray * 255.0), 0, 255).astype(np.uint8)
 
 
+@profiling.timed("optical flow (DIS)")
 def dis_flow(gray_a: np.ndarray, gray_b: np.ndarray, preset: str = "medium", initial: np.ndarray | None = None,
              finest_width_px: int = 0) -> np.ndarray:
     """DIS optical flow (Kroeger et al. 2016) from 8-bit grey image a to b.

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import profiling
+
 _SMALL = 1e-10
 
 
@@ -247,6 +249,7 @@ def relative_pose_gradients(anchor: np.ndarray, g_relative: np.ndarray) -> tuple
     return g, -g.sum(axis=0)
 
 
+@profiling.timed("exposure gradients (host)")
 def exposure_pose_gradients(
     base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus, pose_grads
 ) -> tuple[np.ndarray, np.ndarray]:

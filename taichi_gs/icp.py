@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from . import profiling
 from .geometry import backproject
 
 if TYPE_CHECKING:
@@ -54,6 +55,7 @@ def reliable_depth_mask(depth: np.ndarray, min_depth: float, max_depth: float, e
     return valid & (lowest > 0) & (highest - lowest <= edge_ratio * depth)
 
 
+@profiling.timed("point clouds (Open3D; import on first use)")
 def depth_cloud(depth: np.ndarray, K: np.ndarray, mask: np.ndarray, colors: np.ndarray | None = None) -> o3d.geometry.PointCloud:
     """Camera-space point cloud of the masked depth pixels (coloured if colours are given)."""
     o3d = open3d()
@@ -77,6 +79,7 @@ class ICPLevels:
     distance_factor: float
 
 
+@profiling.timed("ICP")
 def prepare_icp(
     source: o3d.geometry.PointCloud,
     target: o3d.geometry.PointCloud,
@@ -107,6 +110,7 @@ def prepare_icp(
     return ICPLevels(tuple(levels), distance_factor)
 
 
+@profiling.timed("ICP")
 def align(prepared: ICPLevels, init: np.ndarray) -> ICPResult:
     """Point-to-plane ICP through the prepared levels, each starting from the previous one's result;
     correspondences farther than distance_factor x voxel are ignored. Fitness and RMSE are the last
@@ -167,6 +171,7 @@ def capped_voxel_down_sample(cloud: o3d.geometry.PointCloud, voxel: float,
     return clouds[k], VOXEL_GROWTH**k
 
 
+@profiling.timed("RGB-D odometry (Open3D)")
 def rgbd_odometry(
     color_t: np.ndarray,
     depth_t: np.ndarray,

@@ -50,7 +50,8 @@ from typing import Any
 import numpy as np
 
 from .evaluate import psnr, ssim
-from .io.sequence import SOURCED, Sequence, read_color, read_exposure
+from .io.formats.own import read_exposure
+from .io.sequence import SOURCED, Sequence, read_color
 from .io.trajectory import read_tum
 from .noreference import dark_hole_fraction, gradient_energy, masked_psnr, masked_ssim, warp_to_view
 from .plots import image_grid, line_plot

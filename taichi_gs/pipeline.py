@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from . import profiling
 from .config import read_config, write_config
 from .errors import InputError
 from .io.atomic import write_text
@@ -93,7 +94,8 @@ def open_run_sequence(run_dir: Path, gt: Path | None = None) -> Sequence:
     """The input sequence of a run, reopened with the options it was loaded with (format, camera,
     every, scale, intrinsics flags, ...). ``gt`` (another copy of the input, perhaps in another
     layout) replaces the recorded folder; its format and camera are detected afresh."""
-    from .io.sequence import IntrinsicsOverride, load_sequence
+    from .io.load import load_sequence
+    from .io.sequence import IntrinsicsOverride
 
     record = _read_run_info(run_dir) if gt is None or (run_dir / RUN_INFO).is_file() else {}
     options = dict(record.get("load_options") or {})
@@ -207,17 +209,19 @@ def _arch() -> str:
     return backend.arch if backend is not None else "none"
 
 
+@profiling.stage_scope
 def run_stage(stage: str, sequence: Sequence, out: Path, section: Any, progress: ProgressFactory,
-              poses: Path | None = None, points: Path | None = None) -> str:
+              poses: Path | None = None, points: Path | None = None, threads: int | None = None) -> str:
     """Run one stage on ``sequence`` into ``out`` with its resolved config (``resolve_stage``), write
     its ``config.toml`` and mark it done; returns a one-line summary. ``poses``/``points`` replace
-    stage 1's outputs as stage 2's inputs. Caches and checkpoints of earlier runs are resumed only if
+    stage 1's outputs as stage 2's inputs; ``threads`` (one under --profile) the thread count of its config,
+    which its results do not depend on. Caches and checkpoints of earlier runs are resumed only if
     made from the same inputs; later stages are cleared."""
     start = time.perf_counter()
     fingerprint = stage_inputs(stage, sequence, out, section, poses, points)
     _prepare_stage_dir(out, stage, fingerprint)
     write_config(out / stage / CONFIG_FILE, {stage: section})
-    result = _execute(stage, StageContext(sequence, out, section, progress, poses, points))
+    result = _execute(stage, StageContext(sequence, out, section, progress, poses, points, threads))
     _mark_done(out, stage, section, fingerprint, time.perf_counter() - start, _arch(), result.summary, result.warnings)
     return result.summary
 
@@ -232,13 +236,13 @@ def _execute(stage: str, context: StageContext) -> StageRun:
 
 def reconstruct(
     sequence: Sequence, out: Path, sections: dict[str, Any], progress: ProgressFactory,
-    force: str | None = None, on_stage: Callable[[StageReport], None] | None = None,
+    force: str | None = None, on_stage: Callable[[StageReport], None] | None = None, threads: int | None = None,
 ) -> list[StageReport]:
     """Run pose, refine and deblur into ``out``, skipping stages already done with the same inputs
     and config.
 
-    ``force``: rerun from this stage on. Writes ``out/config.toml`` (the resolved config) and
-    ``out/run.json`` (the input sequence). Returns one report per stage.
+    ``force``: rerun from this stage on; ``threads``: as for :func:`run_stage`. Writes ``out/config.toml``
+    (the resolved config) and ``out/run.json`` (the input sequence). Returns one report per stage.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -259,7 +263,7 @@ def reconstruct(
                                  str(done.get("summary", "")))
         else:
             start = time.perf_counter()
-            summary = run_stage(stage, sequence, out, section, progress)
+            summary = run_stage(stage, sequence, out, section, progress, threads=threads)
             report = StageReport(stage, True, time.perf_counter() - start, peak_rss_mb(), summary)
         reports.append(report)
         if on_stage is not None:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import profiling
 from .geometry import adjoint, invert, se3_exp, se3_log
 
 
@@ -58,6 +59,7 @@ def edge_error(edge: Edge, poses: np.ndarray) -> np.ndarray:
     return se3_log(invert(poses[edge.target]) @ poses[edge.source] @ invert(edge.transform))
 
 
+@profiling.timed("pose graph: optimisation")
 def optimise(poses: np.ndarray, edges: list[Edge], settings: GraphSettings = GraphSettings()) -> np.ndarray:
     """Camera-to-world poses (N x 4 x 4) that best satisfy the edges, starting from ``poses``; node 0 stays.
 

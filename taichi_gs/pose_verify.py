@@ -27,9 +27,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from . import profiling
 from .geometry import backproject, project, transform
 from .icp import reliable_depth_mask
-from .stages.pose_losses import bilinear, bilinear_depth, nearest_pixel
+from .sampling import bilinear, bilinear_depth, nearest_pixel
 
 
 MEAN_BILINEAR_SQUARES = 4.0 / 9.0  # the mean of sum w^2 over uniform sub-pixel positions: (2/3)^2
@@ -84,6 +85,7 @@ class FlowCheck:
     trusted: np.ndarray
 
 
+@profiling.timed("verification")
 def flow_disagreement(T: np.ndarray, depth: np.ndarray, K: np.ndarray, check: FlowCheck, scale_px: float,
                       stride: int = 1) -> float:
     """[ours] Mean of min(r / scale_px, 1)^2 over trusted pixels with depth (every ``stride``-th row and
@@ -108,6 +110,7 @@ def flow_disagreement(T: np.ndarray, depth: np.ndarray, K: np.ndarray, check: Fl
     return float(np.mean(np.minimum(r / scale_px, 1.0) ** 2))
 
 
+@profiling.timed("verification")
 def frame_view(color: np.ndarray, depth: np.ndarray, K: np.ndarray, settings: VerifySettings = VerifySettings()) -> FrameView:
     """Precompute one frame's grey image, normals and grid samples (reused for every candidate)."""
     h, w = depth.shape
@@ -199,6 +202,7 @@ def _geman_mcclure(r: np.ndarray, sigma) -> np.ndarray:
     return r2 / (r2 + np.square(sigma))
 
 
+@profiling.timed("verification")
 def verify(T: np.ndarray, a: FrameView, b: FrameView, K: np.ndarray, settings: VerifySettings = VerifySettings()) -> Verification:
     """Score of the transform T (camera a -> camera b); infinite when it leaves no overlap."""
     if not np.all(np.isfinite(T)):

@@ -1,17 +1,18 @@
 """Where the time goes: wall and CPU seconds per stage and per kind of work inside it.
 
-:func:`install` wraps the functions that do the work (stage 1's optical flow, flow solve, ICP, RGB-D
-odometry, verification and pose graph; the rasterizer forward and backward, losses, the k-view average
-or the warped views, Adam, densification, exposure gradients, divergence checks, checkpoints and output
-writing) with timers, so a run with ``taichi-gs reconstruct --profile``
-writes ``OUT/profile.json`` and ``OUT/profile.md`` (:func:`write`). Each timed section synchronises
+The functions that do the work (stage 1's optical flow, flow solve, ICP, RGB-D odometry, verification and pose
+graph; the rasterizer forward and backward, losses, the k-view average or the warped views, Adam,
+densification, exposure gradients, divergence checks, checkpoints and output writing) are marked where they
+are defined with :func:`timed`, and ``pipeline.run_stage`` with :func:`stage_scope`. While a :class:`Profiler`
+is installed (:func:`install`; ``taichi-gs reconstruct --profile``) each marked call is timed, and
+:func:`write` writes ``OUT/profile.json`` and ``OUT/profile.md``. Each timed section synchronises
 the device at its ends, and time is counted exclusively: a section nested in another (a render
 inside a test-view exposure fit) is taken out of its parent. Each section also carries its inclusive
 seconds (the parent with what is nested in it: how long the test-view exposure fits took, renders
 included). "other host work" is a stage's wall time that no section covers (the Python training
 loop, host-side pose updates, progress). CPU seconds are the process's user + sys time (every
-thread), so CPU seconds / wall seconds is how many cores a section kept busy. Without
-:func:`install` nothing is wrapped and nothing is slowed down.
+thread), so CPU seconds / wall seconds is how many cores a section kept busy. Without a profiler
+installed a marked function costs one global read per call, and nothing is synchronised.
 """
 
 from __future__ import annotations
@@ -22,10 +23,13 @@ import time
 from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Concatenate, ParamSpec, TypeVar
 
 from .io import jsonout
 from .io.atomic import write_text
+
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 def _cpu_seconds() -> float:
@@ -143,117 +147,61 @@ class Profiler:
         return "\n".join(lines)
 
 
-_INSTALLED: list[tuple[Any, str, Any]] = []  # (owner, attribute, original) of every wrapped function
+_ACTIVE: Profiler | None = None  # the installed profiler; None: every timed function runs as it is
 
 
-def _replace(owner: Any, attribute: str, wrapper: Any) -> None:
-    _INSTALLED.append((owner, attribute, getattr(owner, attribute)))
-    wrapper._profiled = True
-    setattr(owner, attribute, wrapper)
+def timed(name: str, phases: str | None = None) -> Callable[[Callable[P, R]], Callable[P, R]]:
+    """Time each call of the decorated function as section ``name`` while a profiler is installed; without one
+    the call passes straight through (one global read, no device sync). ``phases``: the keyword argument
+    through which the function adds its own phases' wall seconds to a dict (the rasterizer's forward:
+    project, sort, blend); they become sections "<name>: <phase>". A call that passes that dict itself is not
+    timed (its caller is keeping the clock)."""
+
+    def decorate(function: Callable[P, R]) -> Callable[P, R]:
+        @functools.wraps(function)
+        def timed_call(*args: P.args, **kwargs: P.kwargs) -> R:
+            profiler = _ACTIVE
+            if profiler is None or (phases is not None and kwargs.get(phases) is not None):
+                return function(*args, **kwargs)
+            if phases is None:
+                with profiler.section(name):
+                    return function(*args, **kwargs)
+            parts: dict[str, float] = {}
+            with profiler.section(name):
+                result = function(*args, **{**kwargs, phases: parts})
+            profiler.split_last(parts)
+            return result
+
+        return timed_call
+
+    return decorate
 
 
-def _wrap(owner: Any, attribute: str, profiler: Profiler, name: str) -> None:
-    original = getattr(owner, attribute)
-    if getattr(original, "_profiled", False):
-        return
+def stage_scope(function: Callable[Concatenate[str, P], R]) -> Callable[Concatenate[str, P], R]:
+    """Time each call of ``function(stage, ...)`` as the whole of stage ``stage`` while a profiler is
+    installed: the sections inside are booked to it."""
 
-    @functools.wraps(original)
-    def timed(*args, **kwargs):
-        with profiler.section(name):
-            return original(*args, **kwargs)
+    @functools.wraps(function)
+    def scoped(stage: str, *args: P.args, **kwargs: P.kwargs) -> R:
+        profiler = _ACTIVE
+        if profiler is None:
+            return function(stage, *args, **kwargs)
+        with profiler.stage_scope(stage):
+            return function(stage, *args, **kwargs)
 
-    _replace(owner, attribute, timed)
-
-
-def _wrap_forward(rasterizer_class: Any, profiler: Profiler) -> None:
-    """Time the rasterizer's forward with its own phase clock (project, sort, blend) split out."""
-    original = rasterizer_class.forward
-    if getattr(original, "_profiled", False):
-        return
-
-    @functools.wraps(original)
-    def forward(self, *args, **kwargs):
-        if kwargs.get("timings") is not None:
-            return original(self, *args, **kwargs)
-        parts: dict[str, float] = {}
-        with profiler.section("render forward"):
-            view = original(self, *args, timings=parts, **kwargs)
-        profiler.split_last(parts)
-        return view
-
-    _replace(rasterizer_class, "forward", forward)
-
-
-# Stage 1's timed functions (attribute, section), wherever a stage-1 module binds them
-STAGE1_SECTIONS = (
-    ("dis_flow", "optical flow (DIS)"), ("_flow_solve", "flow solve (se(3))"), ("add_joint", "joint solve (se(3))"),
-    ("sample_pair", "flow samples"), ("joint_normals", "depth normals"),
-    ("depth_cloud", "point clouds (Open3D; import on first use)"), ("prepare_icp", "ICP"), ("align", "ICP"),
-    ("rgbd_odometry", "RGB-D odometry (Open3D)"), ("frame_view", "verification"), ("verify", "verification"),
-    ("flow_disagreement", "verification"), ("_information", "pose graph: information matrices"),
-    ("optimise", "pose graph: optimisation"), ("fuse_points", "fused point cloud"),
-)
+    return scoped
 
 
 def install(profiler: Profiler) -> None:
-    """Wrap the stages' work functions with ``profiler``'s timers (for the rest of the process)."""
-    from . import deblur_model, density, flow, pipeline, refine_model
-    from .io import sequence
-    from .kernels import affine, blur, losses, optim, splat, warp
-    from .stages import checkpoint, deblur, divergence, pose, pose_edges, pose_frames, pose_pair, refine
-
-    profiler.sync = splat.sync
-    _wrap_forward(splat.Rasterizer, profiler)
-    for owner, attribute, name in [
-        (splat.Rasterizer, "backward", "render backward"),
-        (losses, "l1_and_clipped_mse", "losses (device)"), (losses, "dssim", "losses (device)"),
-        (losses, "masked_depth_l1", "losses (device)"), (losses, "opacity_binarization", "losses (device)"),
-        (losses, "normalised_depth_l1_and_coverage", "losses (device)"),
-        (affine, "forward", "colour transform (device)"), (affine, "backward", "colour transform (device)"),
-        (blur, "average", "k-view average / spread"), (blur, "spread", "k-view average / spread"),
-        (warp, "accumulate", "warped views (device)"), (warp, "backward", "warped views (device)"),
-        (optim.Adam, "step", "Adam (Gaussians)"),
-        (deblur_model, "exposure_pose_gradients", "exposure gradients (host)"),
-        (density.DensityControl, "observe", "densification statistics"),
-        (density.DensityControl, "densify_and_prune", "densify / prune / fill"),
-        (deblur, "fill_uncovered", "densify / prune / fill"),
-        (refine_model.DepthRefiner, "prune", "densify / prune / fill"),
-        (refine_model.DepthRefiner, "reset_opacity", "densify / prune / fill"),
-        (deblur_model.BlurScene, "step", "step host work (uploads, fills)"),
-        (refine_model.DepthRefiner, "step", "step host work (uploads, fills)"),
-        (deblur, "_refine_test_exposure", "test-view exposure fits"),
-        (divergence.DivergenceGuard, "check_parameters", "divergence checks (parameter download)"),
-        (checkpoint, "save", "checkpoints (I/O)"),
-        (deblur, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
-        (refine, "_write_outputs", "outputs (renders, PLY, plots: I/O)"),
-        (flow, "dis_flow", "optical flow (DIS)"),
-        # stage 1's modules import some of these from each other: each module's own binding is timed
-        *[(module, attribute, name) for module in (pose, pose_pair, pose_frames, pose_edges)
-          for attribute, name in STAGE1_SECTIONS if hasattr(module, attribute)],
-        # frame reads in every stage, counted once each (not their callers, such as stage 3's _load_frames)
-        (sequence.Sequence, "color", "input frames (I/O)"), (sequence.Sequence, "depth", "input frames (I/O)"),
-    ]:
-        _wrap(owner, attribute, profiler, name)
-    original_run_stage = pipeline.run_stage
-    if not getattr(original_run_stage, "_profiled", False):
-        @functools.wraps(original_run_stage)
-        def run_stage(stage: str, *args, **kwargs):
-            with profiler.stage_scope(stage):
-                return original_run_stage(stage, *args, **kwargs)
-
-        _replace(pipeline, "run_stage", run_stage)
-
-
-def installed() -> bool:
-    """Whether :func:`install` has wrapped the work functions (a profiled run)."""
-    return bool(_INSTALLED)
+    """Time every :func:`timed` function and :func:`stage_scope` with ``profiler`` until :func:`uninstall`."""
+    global _ACTIVE
+    _ACTIVE = profiler
 
 
 def uninstall() -> None:
-    """Put back every function :func:`install` wrapped."""
-    while _INSTALLED:
-        owner, attribute, original = _INSTALLED.pop()
-        setattr(owner, attribute, original)
+    """Stop timing: the timed functions pass straight through again."""
+    global _ACTIVE
+    _ACTIVE = None
 
 
 def write(profiler: Profiler, folder: Path) -> tuple[Path, Path]:

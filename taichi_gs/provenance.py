@@ -17,7 +17,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from .io.sequence import READOUT_KEY, Sequence
+from .io.readout import READOUT_KEY
+from .io.sequence import Sequence
 
 
 def _digest(value: Any) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import profiling
 from .gaussian_store import GaussianStore, morton_order
 from .geometry import raster_intrinsics
 from .render import Camera, Rasterizer, host_copy, losses, to_device
@@ -72,6 +73,7 @@ class DepthRefiner:
             weight, coverage_weight, into=self.loss_values.at(f"depth {row}", f"coverage {row}"))
         self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha, pose_row=row)
 
+    @profiling.timed("step host work (uploads, fills)")
     def step(self, target_depths: list[np.ndarray], cam_to_worlds: list[np.ndarray], lambda_depth: float,
              lambda_coverage: float, lambda_opacity: float,
              lrs: dict[str, float]) -> tuple[dict[str, float], list[np.ndarray]]:
@@ -126,6 +128,7 @@ class DepthRefiner:
         """Indices, into the initial Gaussians, of those still alive."""
         return self.kept.copy()
 
+    @profiling.timed("densify / prune / fill")
     def prune(self, min_opacity: float) -> int:
         """Drop Gaussians with opacity below ``min_opacity`` (their survivors keep their Adam state)."""
         keep = self.opacity_logits() >= logit(min_opacity)
@@ -135,6 +138,7 @@ class DepthRefiner:
         self.kept = self.kept[keep]
         return int((~keep).sum())
 
+    @profiling.timed("densify / prune / fill")
     def reset_opacity(self, opacity: float) -> None:
         """Set every opacity to ``opacity`` and forget its Adam moments (as 3DGS's reset does)."""
         self.store.reset("opacity_logits", np.full(self.count, logit(opacity), np.float32))

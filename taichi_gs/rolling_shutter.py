@@ -15,13 +15,7 @@ import cv2
 import numpy as np
 
 from .geometry import adjoint, invert, median_depths, se3_exp, se3_log
-from .io.sequence import READOUT_KEY
-
-# Readouts (ms) of the colour cameras of known (format, camera) readings: Kinect v1's, 25 ms, the best of 0, 15, 25
-# and 35 ms on a TUM fr1 stretch and near bench/rolling_shutter_readout.py's estimates
-# (docs/notebook/benchmarks-2026-11.md, "A rolling shutter in TUM's Kinect frames"). 7-Scenes was shot with a Kinect
-# v1 as well.
-KNOWN_READOUT_MS = {("tum", "fr1"): 25.0, ("7scenes", "registered"): 25.0, ("7scenes", "shipped"): 25.0}
+from .io.readout import camera_readout_ms
 
 
 def shutter_rows(readout_motion: np.ndarray, height: int) -> np.ndarray:
@@ -60,18 +54,9 @@ def readout_px(readout_motion: np.ndarray, focal: float, depth: float) -> float:
     return float(0.5 * focal * (np.linalg.norm(motion[:3]) / depth + np.linalg.norm(motion[3:])))
 
 
-def camera_readout_ms(source: dict) -> float:
-    """The readout (ms) of a sequence's camera where its reading gives one (``Sequence.source``: the own
-    layout's intrinsics.json ``readout_ms``) or names a known camera (format and camera;
-    :data:`KNOWN_READOUT_MS`), else 0."""
-    if READOUT_KEY in source:
-        return float(source[READOUT_KEY])
-    return KNOWN_READOUT_MS.get((source.get("format"), source.get("camera")), 0.0)
-
-
 def stage_readout_ms(readout_ms: float, camera_readout: bool, source: dict) -> float:
     """A stage's readout (ms): its own ``readout_ms`` when set, else with ``camera_readout`` the known camera's
-    (:func:`camera_readout_ms`), else 0."""
+    (``io.readout.camera_readout_ms``), else 0."""
     if readout_ms == 0 and camera_readout:
         return camera_readout_ms(source)
     return readout_ms

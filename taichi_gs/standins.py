@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from .geometry import backproject, se3_exp, transform
+from .io.load import load_sequence
 from .io.ply import write_splats
-from .io.sequence import Sequence, load_sequence
+from .io.sequence import Sequence
 from .io.trajectory import write_tum
 from .splats import splats_from_points
 from .synth import SynthConfig, generate

@@ -38,18 +38,17 @@ import cv2
 import numpy as np
 
 from . import __version__
+from .choices import BLUR_LEVELS, SCENES, TRAJECTORIES
 from .geometry import intrinsics_matrix, invert, pose_from_rt, se3_exp, se3_log, so3_exp
-from .io.atomic import write_text
 from .io import jsonout
+from .io.atomic import write_text
 from .io.images import encode_depth, to_uint8, write_png
 from .io.sequence import Intrinsics
 from .io.trajectory import format_tum, write_tum
 from .streaks import exposure_poses, exposure_smear, path_lengths, point_tracks
-from .synth_scenes import CAMERA_DISC_RADIUS_M, SCENES, build_scene  # noqa: F401 (CAMERA_DISC_RADIUS_M re-exported)
+from .synth_scenes import CAMERA_DISC_RADIUS_M, build_scene  # noqa: F401 (CAMERA_DISC_RADIUS_M re-exported)
 
 GENERATOR_VERSION = 1
-TRAJECTORIES = ("translation", "turn", "handheld")
-BLUR_LEVELS = ("none", "moderate", "extreme")
 # Target mean smear per blur level as a fraction of the image width (7.5 px and 30 px at 640 wide).
 BLUR_TARGET_WIDTH_FRACTION = {"none": 0.0, "moderate": 7.5 / 640, "extreme": 30.0 / 640}
 MAX_EXPOSURE_FRACTION = 1.0

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-SCENES = ("room", "office", "plain", "corridor")
+from .choices import SCENES
+
 TEXTURE_SIZE = 256
 WALL_TILE_M = 2.0
 OBJECT_TILE_M = 0.8

@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 
 from taichi_gs.cli import app
 from taichi_gs.io.average import AveragedSequence, average_in_linear_light, linear_to_srgb, srgb_to_linear
-from taichi_gs.io.sequence import load_sequence, read_color
+from taichi_gs.io.load import load_sequence
+from taichi_gs.io.sequence import read_color
 from taichi_gs.io.trajectory import read_tum
 from taichi_gs.synth import SynthConfig, generate
 

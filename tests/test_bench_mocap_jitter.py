@@ -15,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from mocap_jitter import jitter_per_axis_deg, rpe_rotation_floor_deg  # noqa: E402
 
 from taichi_gs.evaluate import rpe  # noqa: E402
-from taichi_gs.io.sequence import interpolate_poses  # noqa: E402
+from taichi_gs.io.trajectory import interpolate_poses  # noqa: E402
 
 NOISE_DEG = np.array([0.06, 0.03, 0.02])
 

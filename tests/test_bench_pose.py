@@ -21,7 +21,7 @@ from pose import (OURS, pair_scores, reference_breaks, reference_relatives, run_
                   shared_rotation_error_deg)
 
 from taichi_gs.evaluate import ate  # noqa: E402
-from taichi_gs.io.sequence import load_sequence  # noqa: E402
+from taichi_gs.io.load import load_sequence  # noqa: E402
 from taichi_gs.stages.pose_config import PRESETS  # noqa: E402
 
 

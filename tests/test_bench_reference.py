@@ -18,7 +18,7 @@ from pose import reference_poses  # noqa: E402
 from taichi_gs.evaluate import ate  # noqa: E402
 from taichi_gs.geometry import invert, rotmat_to_quat  # noqa: E402
 from taichi_gs.io.formats.common import NOMINAL_FPS  # noqa: E402
-from taichi_gs.io.sequence import load_sequence  # noqa: E402
+from taichi_gs.io.load import load_sequence  # noqa: E402
 from taichi_gs.io.trajectory import write_tum  # noqa: E402
 
 

@@ -14,7 +14,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 from sharp_reference import merge, place_references, rotation_deg, held_out_positions  # noqa: E402
 
-from taichi_gs.io.sequence import load_sequence  # noqa: E402
+from taichi_gs.io.load import load_sequence  # noqa: E402
 from taichi_gs.synth import SynthConfig, generate  # noqa: E402
 
 

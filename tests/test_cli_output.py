@@ -19,10 +19,9 @@ from rich.console import Console
 from rich.progress import Progress
 from typer.testing import CliRunner
 
-from taichi_gs import synth as synth_module
-from taichi_gs.cli import SynthBlur, SynthScene, SynthTrajectory, app
+from taichi_gs.cli import app
 from taichi_gs.cli_options import COMMAND_ORDER, hoist_global_options
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import write_tum
 from taichi_gs.pipeline import write_run_info
 from taichi_gs.synth import SynthConfig, generate
@@ -57,12 +56,6 @@ def test_every_synth_option_has_help():
     synth = group.get_command(None, "synth")
     missing = [p.name for p in synth.params if p.name != "help" and not getattr(p, "help", None)]
     assert not missing
-
-
-def test_synth_choices_match_the_generator():
-    assert tuple(t.value for t in SynthTrajectory) == synth_module.TRAJECTORIES
-    assert tuple(b.value for b in SynthBlur) == synth_module.BLUR_LEVELS
-    assert tuple(s.value for s in SynthScene) == synth_module.SCENES
 
 
 @pytest.mark.parametrize("args, word", [

@@ -14,9 +14,9 @@ from taichi_gs.evaluate import psnr, ssim
 from taichi_gs.geometry import backproject, invert, project, se3_exp, se3_log, transform, virtual_pose
 from taichi_gs.io.ply import read_splats
 from taichi_gs.io.trajectory import read_tum, read_tum_rows, tum_rows_to_poses
-from taichi_gs.stages.deblur import (
-    PRESETS, exposure_px, initial_offsets, keep_open, load_stage2, run_deblur, split_frames,
-)
+from taichi_gs.stages.deblur import PRESETS, load_stage2, run_deblur
+from taichi_gs.stages.deblur_frames import split_frames
+from taichi_gs.stages.exposures import exposure_px, initial_offsets, keep_open
 
 synth = pytest.importorskip("taichi_gs.synth")
 
@@ -115,7 +115,7 @@ def test_extreme_blur_held_out_views_get_sharper_and_exposures_approach_truth(tm
 
 
 def test_training_colour_downsampling_is_the_block_mean():
-    from taichi_gs.stages.deblur import _downsample_color
+    from taichi_gs.stages.deblur_frames import _downsample_color
 
     color = np.random.default_rng(0).uniform(size=(7, 9, 3)).astype(np.float32)
     small = _downsample_color(color, 2)
@@ -210,7 +210,7 @@ def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupt
     colour transforms and their moments, the RNG) survives a checkpoint: training continues from the
     checkpoint's iteration, not from 0, and reaches the uninterrupted run's result."""
     from taichi_gs.standins import write_refine_outputs
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
 
     synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=5),
                    tmp_path / "seq")

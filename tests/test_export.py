@@ -14,7 +14,7 @@ from taichi_gs.camera_paths import orbit_path, trajectory_path
 from taichi_gs.errors import InputError
 from taichi_gs.export import export_3dgs, export_colmap, export_nerfstudio, export_ply, final_stage
 from taichi_gs.io.ply import read_splats, write_point_cloud, write_splats
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.pipeline import write_run_info
 from taichi_gs.splats import splats_from_points

@@ -17,7 +17,8 @@ from taichi_gs.cli import app
 from taichi_gs.errors import InputError
 from taichi_gs.io.convert import import_sequence
 from taichi_gs.io.formats import detect_format
-from taichi_gs.io.sequence import IntrinsicsOverride, load_sequence
+from taichi_gs.io.load import load_sequence
+from taichi_gs.io.sequence import IntrinsicsOverride
 from taichi_gs.io.transforms import resize_depth
 from taichi_gs.pipeline import open_run_sequence, write_run_info
 

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from taichi_gs.errors import InputError
-from taichi_gs.io.sequence import IntrinsicsOverride, _open_tum_layout, associate, load_sequence, typical_offsets
+from taichi_gs.io.formats.tum import _open_tum_layout, associate, typical_offsets
+from taichi_gs.io.load import load_sequence
+from taichi_gs.io.sequence import IntrinsicsOverride
 from conftest import write_frame_images, write_intrinsics
 
 

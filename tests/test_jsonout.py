@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from taichi_gs.cli import app
 from taichi_gs.errors import InputError
 from taichi_gs.io.jsonout import dumps, write_json
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import read_tum, write_tum
 from taichi_gs.pipeline import write_run_info
 from taichi_gs.report import evaluate_run

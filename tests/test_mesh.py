@@ -7,7 +7,7 @@ import open3d as o3d
 
 from format_fixtures import PLANE_Z, texture, truth_poses, write_own
 from taichi_gs.io.images import to_uint8, write_png
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import write_tum
 from taichi_gs.mesh import export_mesh, mesh_view
 from taichi_gs.pipeline import write_run_info

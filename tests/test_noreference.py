@@ -137,7 +137,7 @@ def _run_on_synthetic(tmp_path, renders):
     """A 6-frame synthetic sequence (TMP/seq) and a run (TMP/run) whose stage-3 trajectory is the ground truth and
     whose sharp and re-blurred renders of frame i are ``renders(sequence, i)``; (sequence, the run's deblur folder)."""
     synth = pytest.importorskip("taichi_gs.synth")
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
 
     synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2),
                    tmp_path / "seq")
@@ -194,7 +194,7 @@ def test_protocol_leaves_pixels_without_a_camera_source_out(tmp_path):
     """A reader transform whose top rows have no source (as an undistorted frame's border): renders
     that are wrong only there score as if they were right everywhere, and the protocol says so."""
     synth = pytest.importorskip("taichi_gs.synth")
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
     from taichi_gs.io.transforms import FrameTransform
     from taichi_gs.noreference_report import no_reference_metrics
 
@@ -237,7 +237,7 @@ def test_protocol_reports_the_streaks_of_learned_and_true_exposures(tmp_path):
     agrees with the smear the generator recorded (from noise-free depth); a run whose exposure.txt does not
     match the frames is an input error naming the file."""
     from taichi_gs.noreference_report import no_reference_metrics
-    from taichi_gs.stages.deblur import _format_exposure
+    from taichi_gs.stages.deblur_outputs import _format_exposure
 
     sequence, stage = _run_on_synthetic(tmp_path, lambda sequence, i: (sequence.color(i), sequence.color(i)))
     (stage / "split.json").write_text(json.dumps({"train": [0, 2, 3, 5], "test": [1, 4], "holdout": "every",

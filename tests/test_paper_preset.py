@@ -45,7 +45,7 @@ def test_the_default_preset_is_ours(stage):
 
 def test_the_pose_stage_of_paper_runs_the_flow_solve_and_icp_alone(tmp_path):
     """Run on a tiny synthetic sequence: every pair's estimate is the flow solve or ICP, and no graph ran."""
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
     from taichi_gs.stages.pose import run_pose
     from taichi_gs.synth import SynthConfig, generate
 

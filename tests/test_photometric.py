@@ -109,7 +109,7 @@ def test_epoch_sampling_visits_every_view_once_per_epoch():
 
 
 def test_nearest_filled_takes_the_closest_valid_depth():
-    from taichi_gs.stages.deblur import nearest_filled
+    from taichi_gs.stages.deblur_density import nearest_filled
 
     depth = np.zeros((5, 7))
     depth[:, 0], depth[:, 6] = 1.0, 3.0

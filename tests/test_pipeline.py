@@ -13,7 +13,8 @@ import pytest
 
 from taichi_gs import pipeline
 from taichi_gs.errors import InputError
-from taichi_gs.io.sequence import IntrinsicsOverride, load_sequence
+from taichi_gs.io.load import load_sequence
+from taichi_gs.io.sequence import IntrinsicsOverride
 from taichi_gs.stages.declaration import StageRun, declared
 from taichi_gs.pipeline import (
     STAGES, open_run_sequence, reconstruct, resolve_sections, resolve_stage, run_stage, stage_done,

@@ -410,16 +410,13 @@ def test_a_failure_on_a_worker_thread_ends_the_run_with_its_own_error(tmp_path, 
     assert not list((tmp_path / "pose" / "pairs").glob("*.json"))
 
 
-def test_stage_1_takes_one_thread_per_core_up_to_a_cap_and_one_when_profiled(monkeypatch):
-    from taichi_gs import profiling
-
+def test_stage_1_takes_one_thread_per_core_up_to_a_cap_and_the_callers_count_when_given(monkeypatch):
     assert pose_stage.stage_threads(PoseConfig(threads=3)) == 3
     monkeypatch.setattr(pose_stage, "available_cores", lambda: 64)
     assert pose_stage.stage_threads(PoseConfig()) == pose_stage.DEFAULT_MAX_THREADS  # by default, up to a cap
     monkeypatch.setattr(pose_stage, "available_cores", lambda: 2)
     assert pose_stage.stage_threads(PoseConfig()) == 2
-    monkeypatch.setattr(profiling, "installed", lambda: True)
-    assert pose_stage.stage_threads(PoseConfig(threads=3)) == 1
+    assert pose_stage.stage_threads(PoseConfig(threads=3), threads=1) == 1  # --profile passes one
 
 
 def test_stage_does_not_import_taichi():

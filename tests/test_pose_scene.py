@@ -68,7 +68,7 @@ def test_scene_is_consistent_with_its_flow():
     color_t, depth_t, color_t1, depth_t1, K = pair(MOTION)
     assert np.all(depth_t > 0) and np.all(depth_t1 > 0)
     flow = exact_flow(depth_t, K, MOTION)
-    from taichi_gs.stages.pose_losses import bilinear
+    from taichi_gs.sampling import bilinear
 
     h, w = depth_t.shape
     u, v = np.meshgrid(np.arange(w), np.arange(h))

@@ -22,7 +22,7 @@ RPE_ROT_BOUND_DEG = 0.1
 
 
 def test_extreme_blur_sequence_meets_error_bounds(tmp_path):
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
 
     synth.generate(synth.SynthConfig(width=320, height=240, frames=10, trajectory="handheld", blur="extreme", seed=3),
                    tmp_path / "seq")
@@ -38,7 +38,7 @@ def test_extreme_blur_sequence_meets_error_bounds(tmp_path):
 
 def test_fast_turn_is_tracked_with_seeded_flow(tmp_path):
     """20 frames per full turn: 18 deg per frame (540 deg/s at 30 fps), beyond unseeded DIS at 160x120."""
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
 
     synth.generate(synth.SynthConfig(width=160, height=120, frames=20, trajectory="turn", blur="extreme", seed=0),
                    tmp_path / "seq")
@@ -63,7 +63,7 @@ def test_full_resolution_flow_fits_a_blurred_translation_closer_than_the_presets
     along the motion. Measured 2026-11-29 on these five pairs: median 2.6% short, at full resolution (the
     default) 1.5%; on a 60-frame translation 3.6% and 2.3%."""
     from taichi_gs.flow import to_gray_u8
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
     from taichi_gs.stages.pose_pair import _flow_solve, dis_flows, sample_pair
 
     synth.generate(synth.SynthConfig(width=320, height=240, frames=6, trajectory="translation", blur="extreme", seed=0),

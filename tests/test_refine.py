@@ -29,7 +29,7 @@ CONFIG = dataclasses.replace(PRESETS["fast"], voxel_size=0.02, iterations_per_fr
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
 
     folder = tmp_path_factory.mktemp("refine") / "seq"
     synth.generate(synth.SynthConfig(width=160, height=120, frames=8, trajectory="handheld", blur="extreme", seed=3), folder)

@@ -13,8 +13,8 @@ import pytest
 
 from taichi_gs.errors import InputError
 from taichi_gs.geometry import pose_from_rt
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.registration import DepthCamera, RegisterDepth
-from taichi_gs.io.sequence import load_sequence
 
 WALL, BOX = 2.5, 1.2
 BOX_HALF = (0.3, 0.2)  # metres, in x and y

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from taichi_gs.evaluate import ate
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import read_tum
 from taichi_gs.synth import SynthConfig, generate
 

@@ -11,7 +11,8 @@ import pytest
 
 from taichi_gs.errors import InputError
 from taichi_gs.geometry import se3_exp
-from taichi_gs.rolling_shutter import camera_readout_ms, readout_motions, readout_px, shutter_rows
+from taichi_gs.io.readout import camera_readout_ms
+from taichi_gs.rolling_shutter import readout_motions, readout_px, shutter_rows
 from taichi_gs.stages.deblur import PRESETS, run_deblur
 from taichi_gs.validation import validate_sections
 

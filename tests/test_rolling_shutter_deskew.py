@@ -16,7 +16,7 @@ import taichi_gs.stages.pose as pose_stage
 from taichi_gs import synth
 from taichi_gs.cli import app
 from taichi_gs.evaluate import ate
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.geometry import se3_exp
 from taichi_gs.rolling_shutter import (MAX_DESKEW_WIDTH_FRACTION, DeskewedSequence, deskew_maps, deskewing_motions,
                                        readout_motions, readout_px, stage_readout_ms)

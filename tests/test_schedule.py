@@ -96,7 +96,7 @@ def test_moving_the_scene_between_resolutions_keeps_gaussians_and_optimiser_stat
     from taichi_gs.splats import splats_from_points
 
     synth = pytest.importorskip("taichi_gs.synth")
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
 
     synth.generate(synth.SynthConfig(width=64, height=48, frames=3, seed=2), tmp_path / "seq")
     sequence = load_sequence(tmp_path / "seq")
@@ -184,7 +184,7 @@ def test_coarse_to_fine_with_k_per_exposure_deblurs_held_out_views_at_full_size(
 def test_stage2_stops_at_the_first_converged_check_and_still_writes_its_outputs(tmp_path):
     import dataclasses
 
-    from taichi_gs.io.sequence import load_sequence
+    from taichi_gs.io.load import load_sequence
     from taichi_gs.io.trajectory import read_tum
     from taichi_gs.stages.pose import PoseConfig, fuse_points
     from taichi_gs.stages.refine import PRESETS, run_refine

@@ -13,7 +13,7 @@ import pytest
 from taichi_gs.geometry import backproject, interpolate, invert, pose_from_rt, project, so3_exp, so3_log, transform
 from taichi_gs import synth
 from taichi_gs.io.images import encode_depth
-from taichi_gs.io.sequence import load_sequence
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.trajectory import read_tum, read_tum_rows
 from taichi_gs.synth import (
     CAMERA_DISC_RADIUS_M, DEPTH_NOISE_QUADRATIC, SCENES, SUBFRAME_STEP_PX, TRAJECTORIES, SynthConfig, build_scene,

@@ -12,9 +12,8 @@ import pytest
 from taichi_gs.deblur_model import BlurScene
 from taichi_gs.geometry import invert, se3_exp, se3_log, virtual_pose
 from taichi_gs.splats import Splats
-from taichi_gs.stages.deblur import (
-    PRESETS, DeblurConfig, _Frames, _refine_test_exposure, load_stage2, neighbours_mid_shift, run_deblur,
-)
+from taichi_gs.stages.deblur import PRESETS, DeblurConfig, _Frames, _refine_test_exposure, load_stage2, run_deblur
+from taichi_gs.stages.exposures import neighbours_mid_shift
 
 WIDTH, HEIGHT = 48, 40
 K = np.array([[40.0, 0.0, 23.5], [0.0, 40.0, 19.5], [0.0, 0.0, 1.0]])

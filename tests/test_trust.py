@@ -18,8 +18,9 @@ from typer.testing import CliRunner
 from taichi_gs.cli import app
 from taichi_gs.errors import DivergenceError, InputError
 from taichi_gs.io.atomic import write_text
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.lock import output_lock
-from taichi_gs.io.sequence import IntrinsicsOverride, load_sequence
+from taichi_gs.io.sequence import IntrinsicsOverride
 from taichi_gs.stages import pose as pose_stage
 from taichi_gs.stages.divergence import DivergenceGuard
 from taichi_gs.stages.pose import PoseConfig, run_pose

@@ -21,8 +21,8 @@ from taichi_gs import geometry as g
 from taichi_gs.cli import app
 from taichi_gs.errors import InputError
 from taichi_gs.io.images import to_uint8, write_png
+from taichi_gs.io.load import load_sequence
 from taichi_gs.io.ply import write_point_cloud, write_splats
-from taichi_gs.io.sequence import load_sequence
 from taichi_gs.io.trajectory import write_tum
 from taichi_gs.pipeline import write_run_info
 from taichi_gs.splats import Splats, splats_from_points

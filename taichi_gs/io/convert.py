@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..rolling_shutter import camera_readout_ms
 from .atomic import atomic_folder, write_text
 from .average import AveragedSequence, blur_record
 from .images import encode_depth, to_uint8, write_png
 from .jsonout import write_json
+from .readout import camera_readout_ms
 from .sequence import Sequence
 from .trajectory import format_tum
 

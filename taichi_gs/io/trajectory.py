@@ -1,4 +1,4 @@
-"""TUM trajectory files: ``timestamp tx ty tz qx qy qz qw`` per line, camera-to-world."""
+"""TUM trajectory files: ``timestamp tx ty tz qx qy qz qw`` per line, camera-to-world; poses interpolated in time."""
 
 from __future__ import annotations
 
@@ -96,3 +96,33 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """Timestamps (N,) and camera-to-world poses (N x 4 x 4) of a TUM trajectory file."""
     rows = read_tum_rows(path)
     return rows[:, 0], tum_rows_to_poses(rows)
+
+
+def interpolate_poses(times: np.ndarray, poses: np.ndarray, query: np.ndarray, tolerance: float) -> np.ndarray:
+    """Poses at query times: linear in position, slerp in rotation; NaN beyond ``tolerance`` outside."""
+    out = np.full((len(query), 4, 4), np.nan)
+    for k, t in enumerate(query):
+        j = int(np.searchsorted(times, t))
+        if j < len(times) and abs(times[j] - t) < 1e-9:
+            out[k] = poses[j]
+        elif 0 < j < len(times):
+            a = (t - times[j - 1]) / (times[j] - times[j - 1])
+            out[k] = _blend(poses[j - 1], poses[j], a)
+        elif j == 0 and times[0] - t <= tolerance:
+            out[k] = poses[0]
+        elif j == len(times) and t - times[-1] <= tolerance:
+            out[k] = poses[-1]
+    return out
+
+
+def _blend(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
+    q0, q1 = rotmat_to_quat(T0[:3, :3]), rotmat_to_quat(T1[:3, :3])
+    if np.dot(q0, q1) < 0:
+        q1 = -q1
+    dot = np.clip(np.dot(q0, q1), -1.0, 1.0)
+    theta = np.arccos(dot)
+    if theta < 1e-8:
+        q = q0
+    else:
+        q = (np.sin((1 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
+    return pose_from_rt(quat_to_rotmat(q), (1 - a) * T0[:3, 3] + a * T1[:3, 3])

@@ -1,5 +1,4 @@
-"""Per-frame transforms a ``Sequence`` applies as it reads each frame, and the sequence-level
-operations built on them (``--every``, ``--scale``).
+"""Per-frame transforms a ``Sequence`` applies as it reads each frame (``io.load`` builds ``--scale`` on them).
 
 A transform maps (file path, image) to an image. It is keyed by the frame's file path rather than
 its index, so subsampling a sequence keeps it valid. Colour is float32 H x W x 3 in [0, 1]; depth is
@@ -9,19 +8,14 @@ integer coordinates), so resizing by s maps a coordinate c to (c + 0.5) s - 0.5.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from ..errors import InputError
-
-if TYPE_CHECKING:
-    from .sequence import Intrinsics, Sequence
 
 
 class FrameTransform:
@@ -72,13 +66,6 @@ def then(first: FrameTransform | None, second: FrameTransform) -> FrameTransform
 def scaled_size(width: int, height: int, scale: float) -> tuple[int, int]:
     """Image size after scaling by ``scale`` (rounded, at least 1 pixel)."""
     return max(1, round(width * scale)), max(1, round(height * scale))
-
-
-def scale_intrinsics(intrinsics: Intrinsics, width: int, height: int) -> Intrinsics:
-    """Intrinsics of the same camera on a resized width x height grid (pixel-centre convention)."""
-    sx, sy = width / intrinsics.width, height / intrinsics.height
-    return dataclasses.replace(intrinsics, width=width, height=height, fx=intrinsics.fx * sx, fy=intrinsics.fy * sy,
-                               cx=(intrinsics.cx + 0.5) * sx - 0.5, cy=(intrinsics.cy + 0.5) * sy - 0.5)
 
 
 def scale_matrix(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
@@ -222,31 +209,3 @@ class DropDepthAbove(FrameTransform):
 
     def depth(self, path: Path, depth: np.ndarray) -> np.ndarray:
         return np.where(depth >= self.limit, 0.0, depth).astype(np.float32)
-
-
-def subsample(sequence: Sequence, every: int, first: int = 0, count: int = 0) -> Sequence:
-    """Frames ``first``, ``first + every``, ... of a sequence, at most ``count`` of them (0: to the end);
-    timestamps and ground truth kept."""
-    if every == 1 and first == 0 and count == 0:
-        return sequence
-    picked = slice(first, None if count == 0 else first + count * every, every)
-    cut = copy.copy(sequence)
-    for attr in ("timestamps", "rgb_paths", "depth_paths", "names", "gt_poses", "exposure_poses", "sharp_paths"):
-        value = getattr(sequence, attr)
-        setattr(cut, attr, None if value is None else value[picked])
-    cut.source = {**sequence.source, "every": every, "first": first, "count": count}
-    return cut
-
-
-def rescale(sequence: Sequence, scale: float) -> Sequence:
-    """A sequence read at ``scale`` times its width and height (colour by area, depth by
-    ``resize_depth``, intrinsics with the pixel-centre convention)."""
-    if scale == 1.0:
-        return sequence
-    intr = sequence.intrinsics
-    width, height = scaled_size(intr.width, intr.height, scale)
-    scaled = copy.copy(sequence)
-    scaled.intrinsics = scale_intrinsics(intr, width, height)
-    scaled.transform = then(sequence.transform, Resize(width, height))
-    scaled.source = {**sequence.source, "scale": scale}
-    return scaled

@@ -9,6 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
+from .. import profiling
 from . import host_copy, row_spans, runtime, scan
 
 N_GRAD_M = 12  # dL/dM, row-major, accumulated per row span
@@ -67,6 +68,7 @@ def _matrix(M: np.ndarray, dtype):
     return ti.Matrix(np.asarray(M, dtype=np.float64).tolist(), dt=dtype)
 
 
+@profiling.timed("colour transform (device)")
 def forward(image: ti.Ndarray, M: np.ndarray, out: ti.Ndarray) -> ti.Ndarray:
     """Write ``image`` (H, W, 3) transformed by the 3 x 4 affine ``M`` into ``out`` and return it."""
     _check(image, out)
@@ -74,6 +76,7 @@ def forward(image: ti.Ndarray, M: np.ndarray, out: ti.Ndarray) -> ti.Ndarray:
     return out
 
 
+@profiling.timed("colour transform (device)")
 def backward(image: ti.Ndarray, M: np.ndarray, grad_out: ti.Ndarray, grad_image: ti.Ndarray) -> np.ndarray:
     """Given dL/d out of :func:`forward`, overwrite ``grad_image`` with dL/d image and return
     dL/dM (3 x 4, each image row's sum added up in float64)."""

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import taichi as ti
 
+from .. import profiling
 from . import runtime
 
 VIEWS_PER_LAUNCH = 16  # image arguments of one launch; unused ones get a placeholder
@@ -57,6 +58,7 @@ def _placeholder(dt) -> ti.Ndarray:
     return ti.ndarray(dt, (1, 1, 1))
 
 
+@profiling.timed("k-view average / spread")
 def average(views: Sequence[ti.Ndarray], out: ti.Ndarray) -> ti.Ndarray:
     """Write the mean of the k same-shaped (H, W, C) images ``views`` into ``out`` and return it."""
     if not views:
@@ -72,6 +74,7 @@ def average(views: Sequence[ti.Ndarray], out: ti.Ndarray) -> ti.Ndarray:
     return out
 
 
+@profiling.timed("k-view average / spread")
 def spread(grad_blurred: ti.Ndarray, k: int, out: ti.Ndarray) -> ti.Ndarray:
     """Gradient of each of the k averaged (H, W, C) views: ``out = grad_blurred / k`` (share it across views)."""
     _kernels(out.dtype).scale_add(out, grad_blurred, 1.0 / k, 0.0)

@@ -29,6 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
+from .. import profiling
 from . import host_copy, row_spans, runtime
 from .splat import to_device
 
@@ -449,6 +450,7 @@ def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1
     return l1_and_clipped_mse(pred, target, grad, weight, mask)[0]
 
 
+@profiling.timed("losses (device)")
 def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
                        mask: PixelWeights | None = None, into: Slot | None = None) -> tuple[float, float] | None:
     """:func:`l1`, and from the same pass the mean of ``(clip(pred, 0, 1) - target)^2`` over the same
@@ -459,6 +461,7 @@ def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, w
                 *_partials(pred, 2))
 
 
+@profiling.timed("losses (device)")
 def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
                     into: Slot | None = None) -> float | None:
     """Mean ``|pred - target|`` over pixels with target > 0 of (H, W) depth maps; adds to ``grad``."""
@@ -467,6 +470,7 @@ def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weig
     return None if value is None else value[0]
 
 
+@profiling.timed("losses (device)")
 def normalised_depth_l1_and_coverage(depth: ti.Ndarray, transmittance: ti.Ndarray, target: ti.Ndarray,
                                      grad_depth: ti.Ndarray, grad_alpha: ti.Ndarray, min_alpha: float,
                                      weight: float = 1.0, coverage_weight: float = 1.0,
@@ -481,6 +485,7 @@ def normalised_depth_l1_and_coverage(depth: ti.Ndarray, transmittance: ti.Ndarra
                 grad_depth, grad_alpha, min_alpha, weight, coverage_weight, *_partials(depth, 4))
 
 
+@profiling.timed("losses (device)")
 def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
           mask: PixelWeights | None = None, into: Slot | None = None) -> float | None:
     """``1 - SSIM`` of (H, W, C) images (3DGS window and constants), the SSIM map averaged over
@@ -496,6 +501,7 @@ def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float 
     return None if value is None else value[0]
 
 
+@profiling.timed("losses (device)")
 def opacity_binarization(logits: ti.Ndarray, grad: ti.Ndarray, n: int, weight: float = 1.0,
                          into: Slot | None = None) -> float | None:
     """``sum o^2 (1 - o)^2`` over the first n logits; adds ``weight * dL/dlogit`` to ``grad``."""

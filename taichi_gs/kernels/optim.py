@@ -7,6 +7,8 @@ from types import SimpleNamespace
 
 import taichi as ti
 
+from .. import profiling
+
 SLOTS = 5  # parameter tensors per launch; a step over fewer fills the rest with an empty placeholder
 
 
@@ -82,6 +84,7 @@ class Adam:
             v.fill(0.0)
             self.moments[name] = (m, v)
 
+    @profiling.timed("Adam (Gaussians)")
     def step(self, n: int | None = None) -> None:
         """One Adam update of every parameter in ``lrs``."""
         self.t += 1

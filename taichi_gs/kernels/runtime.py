@@ -28,11 +28,11 @@ from typing import Any
 
 import taichi as ti
 
+from ..choices import ARCH_CHOICES
 from ..errors import BackendError
 from ..machine import available_cores
 from . import devices
 
-ARCH_CHOICES = ("auto", "cpu", "cuda", "vulkan", "metal")
 ARCH_ENV = "TAICHI_GS_ARCH"
 CPU_THREADS_ENV = "TI_CPU_MAX_NUM_THREADS"  # Taichi's own setting of the CPU thread count
 # measured on 2 cores: renders 0.93x the time (docs/notebook/benchmarks-2026-11.md, "Two CPU threads per core")

@@ -29,6 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
+from .. import profiling
 from . import host_copy, project, raster_gpu, rasterize, runtime, scan, tiles
 from .project import P_WIDTH
 from .rasterize import B_WIDTH, E_WIDTH, F_WIDTH, N_SLOT_GRADS
@@ -531,6 +532,7 @@ class Rasterizer:
         self.pose_rows = ti.ndarray(dtype, (16, POSE_COLUMNS))  # rows of backward(..., pose_row=j)
         self._own_pose = ti.ndarray(dtype, (1, POSE_COLUMNS))  # that of a checked backward
 
+    @profiling.timed("render forward", phases="timings")
     def forward(
         self, gaussians: DeviceGaussians, camera: Camera, view: int = 0, background=(0.0, 0.0, 0.0),
         timings: dict | None = None, with_colour: bool = True, deferred: bool = False,
@@ -623,6 +625,7 @@ class Rasterizer:
         )
         clock("blend")
 
+    @profiling.timed("render backward")
     def backward(self, gaussians: DeviceGaussians, view: View, d_rgb=None, d_depth=None, d_alpha=None,
                  pose_row: int | None = None) -> np.ndarray | None:
         """Accumulate dL/dparams into ``gaussians.grads``; return dL/d(pose) (6,), or with ``pose_row`` leave it

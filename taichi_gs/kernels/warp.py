@@ -36,6 +36,7 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 
+from .. import profiling
 from . import host_copy, runtime, scan
 
 FIXED_POINT_STEPS = 1  # depth refinements after the first guess (none are needed for a pure rotation)
@@ -420,6 +421,7 @@ def _check(anchor_rgb: ti.Ndarray, image: ti.Ndarray, margin: int, z: ti.Ndarray
         raise ValueError(f"depth buffer of shape {tuple(z.shape)} for {views} views of {h} x {w}")
 
 
+@profiling.timed("warped views (device)")
 def accumulate(anchor_rgb: ti.Ndarray, anchor_depth: ti.Ndarray, anchor_trans: ti.Ndarray,
                targets_to_anchor: np.ndarray, K: np.ndarray, margin: int, fallback_depth: float, weight: float,
                out: ti.Ndarray, z_out: ti.Ndarray, first: bool = False) -> None:
@@ -436,6 +438,7 @@ def accumulate(anchor_rgb: ti.Ndarray, anchor_depth: ti.Ndarray, anchor_trans: t
                                 margin, fallback_depth, weight, 0.0 if first else 1.0, out, z_out)
 
 
+@profiling.timed("warped views (device)")
 def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, targets_to_anchor: np.ndarray,
              K: np.ndarray, margin: int, weight: float, grad_anchor: ti.Ndarray | None) -> np.ndarray:
     """Given dL/d out of :func:`accumulate`'s term (``grad_out`` (H, W, 3); the term is ``weight`` x the

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import profiling
 from ..io.atomic import atomic_path
 
 FORMAT = 2  # the layout of the arrays; bump when a model's state() changes its keys
@@ -41,6 +42,7 @@ def prefixed(prefix: str, arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray
     return {f"{prefix}_{k}": v for k, v in arrays.items()}
 
 
+@profiling.timed("checkpoints (I/O)")
 def save(path: Path, iteration: int, config: Any, arrays: dict[str, np.ndarray], records: dict[str, Any]) -> None:
     """Write a checkpoint of ``config``'s run after ``iteration`` iterations."""
     clash = [k for k in arrays if k in _RESERVED or k.startswith(_RECORD)]

@@ -11,453 +11,59 @@ exposure against its blurred frame with the scene frozen (no ground truth places
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from ..deblur_model import BlurScene, FrozenAnchors, Rates, anchor_count, warped_views
+from .. import profiling
+from ..deblur_model import (
+    BlurScene,
+    BlurStep,
+    FrozenAnchors,
+    Rates,
+    anchor_count,
+    warped_views,
+)
 from ..density import DensitySchedule, footprint_limit
 from ..errors import InputError
-from ..geometry import invert, median_depths, se3_log, virtual_pose
-from ..io.atomic import write_text
-from ..io import jsonout
-from ..io.ply import read_splats, write_splats
-from ..io.sequence import SOURCED, Sequence
-from ..io.trajectory import check_frame_times, format_tum, read_tum, write_tum
-from ..io.images import encode_depth, to_uint8, write_png
-from ..noreference import laplacian_variance, sharpest_holdout
-from ..photometric import IDENTITY, apply_affine, identity_penalty
-from ..rolling_shutter import DeskewedSequence, deskewing_motions, readout_motions, readout_skews, stage_readout_ms
-from ..plots import image_grid, line_plot
+from ..io.sequence import Sequence
+from ..photometric import IDENTITY, identity_penalty
+from ..rolling_shutter import (
+    DeskewedSequence,
+    deskewing_motions,
+    readout_motions,
+    stage_readout_ms,
+)
 from ..splats import Splats
 from . import checkpoint
+from .deblur_config import PRESETS, DeblurConfig, scaled_schedule, with_headroom
+from .deblur_density import density_schedule, fill_uncovered
+from .deblur_frames import (
+    _Frames,
+    _load_frames,
+    _phase,
+    _scene_extent,
+    _Shutter,
+    choose_split,
+    load_stage2,
+    loss_mask,
+    training_frame,
+    with_sh_degree,
+)
+from .deblur_outputs import DeblurResult, _step_warnings, _write_outputs
 from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
 from .divergence import DivergenceGuard
-from .gauge import FrameShift, back_to_stage_2s_frame
+from .exposures import Exposures, colour_step, exposure_px, keep_open, shrink_mid
+from .gauge import back_to_stage_2s_frame
 from .row_adam import RowAdam
 from .rprop import Rprop
-from .schedule import downsample_depth, exp_decay, scaled_intrinsics, training_scale, views_for_span
-
+from .schedule import exp_decay, training_scale, views_for_span
 
 PARAMETER_CHECK_EVERY = 50  # iterations between divergence checks of the parameters (a device copy)
-
-
-@dataclass(frozen=True)
-class DeblurConfig:
-    """Every number stage 3 uses; defaults follow the method and 3DGS (`paper` preset)."""
-
-    k: int = 15  # virtual sharp views per exposure
-    holdout_every: int = 3  # one test view per h frames; 0 = train on all
-    holdout: str = "every"  # "every": frames 1, 1 + h, ...; "sharpest": the sharpest of each h frames (real data)
-    iterations: int = 30000
-    lambda_dssim: float = 0.2  # l_B
-    lambda_depth: float = 0.1  # l_D
-    sh_degree: int = 3
-    lr_means: float = 1.6e-4  # times the scene extent, decayed to lr_means_final
-    lr_means_final: float = 1.6e-6
-    lr_colors: float = 0.0025
-    lr_opacity: float = 0.05
-    lr_scales: float = 0.005
-    lr_quats: float = 0.001
-    lr_exposure: float = 1e-3  # Adam on the se(3) offsets, decayed to lr_exposure_final
-    lr_exposure_final: float = 1e-4
-    exposure_from: int = 0  # exposures stay at their start for this many iterations (the scene settles first)
-    initial_exposure_fraction: float = 0.5  # offsets start at +-half this share of the motion to the neighbours
-    min_open_px: float = 0.25  # exposures narrower than this on the image are re-opened to it
-    max_step_px: float = 1.0  # warn when adjacent virtual views move more than this
-    densify_from: int = 500
-    densify_until: int = 15000
-    densify_every: int = 100
-    densify_grad: float = 0.0002  # 3DGS's threshold on the mean NDC positional gradient
-    split_scale: float = 0.01  # clone below, split above this share of the scene extent
-    prune_opacity: float = 0.005
-    prune_scale: float = 0.1  # drop Gaussians larger than this share of the scene extent
-    max_gaussians: int = 2_000_000
-    # [ours] the cap is at least this multiple of the Gaussians stage 2 hands over (0: max_gaussians alone), so
-    # that a scene handed over above max_gaussians still densifies and fills its holes
-    densify_headroom: float = 0.0
-    reset_opacity_every: int = 3000  # 0 = never
-    test_pose_iterations: int = 100  # test-time exposure refinement per held-out frame; 0 = off
-    lr_test_pose: float = 1e-3  # Adam's rate, or Rprop's first step
-    # [ours] optimiser of the held-out fits: "adam" (the method's) or "rprop" (per-coordinate step sizes
-    # from the gradient's sign history: the same deterministic loss every step, so fewer steps to converge)
-    test_fit: str = "adam"
-    # [ours] a held-out frame's fit starts from the mid-exposure correction its training neighbours learned
-    # (the mean of (d_s + d_e) / 2 of the nearest training frame on each side), not from its stage-2 pose
-    test_fit_from_neighbours: bool = False
-    # [ours] with warp_views, a held-out fit keeps its anchor renders across steps and warps every step's views
-    # from them (no rasterizer pass while only the exposure moves), rendering them again once one would move
-    # more than this many pixels (0: render the anchors at every step, as training does)
-    test_fit_refresh_px: float = 0.0
-    resolution_scale: int = 1  # train at 1/scale of the input resolution; outputs are full size
-    seed: int = 0
-    checkpoint_every: int = 1000
-    # [ours] a trained affine colour transform (3 x 4) per frame on the re-blurred render (exposure and
-    # white-balance changes of real cameras), pulled to identity by lambda_colour_affine |M - I|^2
-    colour_affine: bool = False
-    lr_colour_affine: float = 0.005
-    lambda_colour_affine: float = 0.01
-    # [ours] schedule: iterations = max(iterations, iterations_per_view x training views), with the
-    # densification and exposure windows stretched alike (0 = fixed iterations)
-    iterations_per_view: int = 0
-    epoch_sampling: bool = False  # [ours] visit training views in shuffled epochs instead of at random
-    # [ours] at each densification, in fill_frames random training views, add a Gaussian every
-    # fill_stride pixels where the render's alpha is below 0.5 (no Gaussians: depth holes of the
-    # sensor), at the view's sensor depth, else the scene's rendered depth, else the nearest such depth
-    fill_uncovered: bool = False
-    fill_frames: int = 2
-    fill_stride: int = 2
-    # [ours] splat footprint: before training, split Gaussians wider (largest sigma) than init_max_px
-    # pixels at the training resolution, seen from the nearest training camera (stage 2's fixed-size
-    # Gaussians are wider than the blur at 320x240); during densification, split instead of clone
-    # those wider than split_px pixels (0 = off: 3DGS's world-size rule split_scale alone)
-    init_max_px: float = 0.0
-    split_px: float = 0.0
-    grid_frames: int = 4
-    # [ours] coarse-to-fine: the first coarse_fraction of the iterations train at 1/coarse_scale, then
-    # 1/(coarse_scale/2), ... 1/2 of the training resolution (equal shares; 1 = off), the rest at it
-    coarse_scale: int = 1
-    coarse_fraction: float = 0.0
-    # [ours] k per exposure: each step renders the fewest views (k_min..k) whose neighbours lie at most
-    # max_step_px apart at the resolution trained (the 1 px rule per frame and phase); off: always k
-    adaptive_k: bool = False
-    k_min: int = 3
-    # [ours] fewer views while the scene is soft: for the first early_views_fraction of the iterations,
-    # adaptive k allows early_step_scale x max_step_px between neighbouring views (0 = off)
-    early_views_fraction: float = 0.0
-    early_step_scale: float = 2.0
-    # [ours] keep the Gaussians in Morton order of their centres in memory (at the start and after every
-    # densification and fill): the same scene, fewer cache misses in the per-tile work
-    spatial_order: bool = False
-    # [ours] photometric losses over the pixels the camera saw only (``Sequence.sourced_pixels``): an
-    # undistorted frame's unsourced border holds copies of its edge that no scene explains
-    sourced_pixels_only: bool = False
-    # [ours] which Gaussians densification grows: "gradient" (3DGS: mean positional gradient above
-    # densify_grad), "error" (the error_densify_share of them that carry the most re-blur error: blending
-    # weight x absolute error, summed over error_densify_frames random training views) or "both" (the
-    # error's after the gradient's)
-    densify_by: str = "gradient"
-    error_densify_share: float = 0.05
-    error_densify_frames: int = 4
-    # [ours] after the last densification, drop the Gaussians of least blending weight (summed over the training
-    # views' sharp mid-exposure renders: LightGaussian's global significance) that together make at most this
-    # share of the images; the rest of the run trains and renders fewer Gaussians (0 = off). 0.01: 27-35% fewer
-    # Gaussians, -0.04 to -0.07 dB held-out, 0.91-0.95x the stage-3 time (docs/notebook/benchmarks-2026-11.md,
-    # "Significance pruning")
-    prune_weight_share: float = 0.0
-    # [ours] warped virtual views: render only the fewest anchor views (padded by warp_px + 2 pixels; an odd
-    # number, one at mid-exposure) that leave every virtual view within warp_px of one, and make the k views
-    # by warping the anchors' renders through their depth (exact for rotations; disocclusions of
-    # translations are approximated). 12 px: docs/notebook/benchmarks-2026-11.md, "One anchor at mid-exposure"
-    warp_views: bool = False
-    warp_px: float = 12.0
-    # [ours] with warp_views and adaptive_k, an even count of views is raised by one (within k) where that
-    # interpolates no more views: the added view puts one at each odd group's anchor pose, which the warp
-    # reads instead of interpolating, so the exposure is sampled more finely at the same cost
-    # (docs/notebook/benchmarks-2026-11.md, "Odd view counts")
-    odd_views: bool = False
-    # [ours] after training (and the held-out fits), move the scene and every exposure by the scale and
-    # translation that map the training frames' mid-exposure centres back onto stage 2's (stages/gauge.py):
-    # colour leaves that gauge free and the depth term lets it drift. The scale moves only where the fit
-    # determines it to keep_frame_scale_error (standard error), else the translation alone. Colour renders are
-    # unchanged; OUT/deblur/frame.json records the move.
-    keep_frame: bool = False
-    keep_frame_scale_error: float = 0.001
-    # [ours] after every update of an exposure (training and held-out fits), its mid-exposure offset (d_s + d_e) / 2
-    # shrinks by this share towards stage 2's pose, its span unchanged: 0 leaves it free (the method), 1 pins every
-    # mid-exposure pose at stage 2's (the exposures learn their spans only)
-    mid_exposure_decay: float = 0.0
-    # [ours] a rolling shutter: the colour camera reads its rows top to bottom over readout_ms milliseconds
-    # (0: a global shutter, the method). Each virtual view's rows are then warped from the anchors at the poses
-    # where they were read, along each frame's velocity from its neighbours in the trajectory
-    # (``rolling_shutter``); needs warp_views. The sharp renders and "error" densification stay global-shutter.
-    # camera_readout: with readout_ms 0 and warp_views, the readout of a camera the sequence's reading names
-    # where it is known (``rolling_shutter.KNOWN_READOUT_MS``: TUM fr1, 7-Scenes), else 0
-    readout_ms: float = 0.0
-    camera_readout: bool = False
-    # [ours] with a readout, the depth frames are de-skewed to their frames' poses (rolling_shutter.DeskewedSequence,
-    # each frame's motion from stage 2's poses), so that the depth loss and fill_uncovered, which use
-    # global-shutter renders at the mid-exposure pose, meet depth as a global shutter would read it.
-    # false: depth as read
-    deskew_depth: bool = True
-
-
-PRESETS = {
-    "paper": DeblurConfig(),
-    # CPU-sized: 1/36 of the iterations at the shortest (below), so colours learn 8x faster; exposures wait for
-    # the scene to settle; full resolution (training at half size left speckles at full size: -7 dB on the sample).
-    # k = 8 for time, so fast holds the k-view blur sum to 2 px steps (exposures up to 14 px; the
-    # sample's learned exposures reach 12.2 px, a TUM slice's 13.8 px: with k = 7, 12 px, both warned;
-    # adaptive_k spends the eighth view only where an exposure needs it; docs/notebook/benchmarks-2026-11.md, "k up to
-    # 8"); k = 9 with odd_views (below) interpolates no more views than k = 8 did, and covers 16 px at 2 px steps;
-    # paper keeps the method's 1 px rule of thumb with k = 15.
-    # The schedule below is the shortest (840 iterations: 10 training views at 80 per view); longer sequences
-    # scale it (scaled_schedule), and from 15 views on that gives exactly the schedule of the 1200-iteration base
-    # it replaced (densification from 1/12 to 3/8 of the run every 1/12, exposures from 1/10).
-    "fast": DeblurConfig(k=9, max_step_px=2.0, iterations=840, sh_degree=0, lr_colors=0.02, densify_from=70,
-                         densify_until=315, densify_every=70, max_gaussians=100_000, reset_opacity_every=0,
-                         lr_exposure=2e-3, exposure_from=84, checkpoint_every=100,
-                         # [ours] real captures: +1.2 dB on held-out sharpest frames of a 7-Scenes slice,
-                         # +0.06 dB on synthetic (docs/notebook/benchmarks-2026-11.md, "Stage 3 on real captures")
-                         colour_affine=True, fill_uncovered=True, epoch_sampling=True,
-                         # [ours] k per exposure (3..k views at 2 px steps): 0.75x the stage-3 CPU time on the
-                         # sample at +0.08 dB held-out PSNR with k = 7 (docs/notebook/benchmarks-2026-11.md, "Quality
-                         # per minute")
-                         adaptive_k=True,
-                         # [ours] 80 steps per training view (40 per view gave +1.8 dB held-out on a 60-frame
-                         # sequence and +0.55 dB on a real capture, docs/notebook/benchmarks-2026-11.md, "Steps per
-                         # view"); affordable with
-                         # warped views (below). Short sequences too: the base used to be 1200 iterations up to 15
-                         # views; 880 on three 16-frame clips (11 views) took 0.68-0.83x the stage-3 time at -0.02
-                         # to -0.23 dB held-out (docs/notebook/benchmarks-2026-11.md, "Short sequences at 80 steps per
-                         # view")
-                         iterations_per_view=80,
-                         # [ours] held-out fits by Rprop: 20 steps score like Adam's 30 on the sample and on a real
-                         # capture (docs/notebook/benchmarks-2026-11.md, "Held-out fits by Rprop"); the Adam fit took
-                         # 30. On frozen anchors
-                         # (below) a step costs about a quarter of a rendered one, so the fits take 40 steps in
-                         # 0.42-0.63x the time of 20 rendered ones: held-out PSNR -0.01 to +0.07 dB, re-blur +0.05 to
-                         # +0.34 dB on three synthetic clips and a real slice (docs/notebook/benchmarks-2026-11.md,
-                         # "Held-out fits on frozen anchors")
-                         test_pose_iterations=40, test_fit="rprop", test_fit_refresh_px=1.0,
-                         # [ours] held-out fits start from their training neighbours' learned mid-exposure
-                         # correction: +0.02 to +0.21 dB held-out at the same 20 steps on the sample and three real
-                         # slices (docs/notebook/benchmarks-2026-11.md, "How much of a real capture's held-out figure is
-                         # the held-out fit")
-                         test_fit_from_neighbours=True,
-                         # [ours] Gaussians in Morton order in memory: 0.86-0.88x the stage-3 CPU-seconds on the
-                         # sample and a 60-frame sequence, held-out PSNR within 0.01 dB
-                         # (docs/notebook/benchmarks-2026-11.md, "Morton order on in the fast preset")
-                         spatial_order=True,
-                         # [ours] 4 px steps between virtual views for the first 30% of the iterations: 0.91x the
-                         # stage-3 CPU time on the sample at +0.06 dB held-out; a real capture at 50% lost nothing
-                         # (docs/notebook/benchmarks-2026-11.md, "Fewer virtual views while the scene is soft")
-                         early_views_fraction=0.3,
-                         # [ours] warped virtual views at twice the steps (1200 iterations, 80 per view) against
-                         # rendered views at 600 / 40: 0.69-0.96x the stage-3 time, held-out PSNR +0.09 dB on the
-                         # sample, +0.16 / +0.36 dB on two real captures (docs/notebook/benchmarks-2026-11.md, "Warped
-                         # virtual views")
-                         warp_views=True,
-                         # [ours] odd view counts: 0.998-1.006x the stage-3 time, held-out PSNR +0.01 and +0.06 dB on
-                         # two synthetic sequences, -0.03 and 0.00 dB on two real slices
-                         # (docs/notebook/benchmarks-2026-11.md, "Odd view counts")
-                         odd_views=True,
-                         # [ours] room to densify above stage 2's count: three sequences handed over 157-193k
-                         # Gaussians (above the 100k cap: they never densified or filled) gained +0.18 to +0.32 dB
-                         # held-out at 1.03-1.09x the stage-3 time; scenes handed over under 77k are unchanged
-                         # (docs/notebook/benchmarks-2026-11.md, "Room to densify")
-                         densify_headroom=1.3,
-                         # [ours] the output in stage 2's frame (docs/notebook/benchmarks-2026-11.md, "Stage 3 back in
-                         # stage 2's frame")
-                         keep_frame=True,
-                         # [ours] exposures start open for 0.7 of the motion to the neighbours, not 0.5: extreme blur
-                         # keeps the shutter open for most of the frame interval (averaged real frames 0.62-0.88,
-                         # synth's extreme blur 1.0), and 0.7 starts nearer the truth than 0.5 on every kind measured.
-                         # Held-out PSNR +0.23 dB on the sample, +0.15 and +1.33 dB on 16-frame averaged 7-Scenes and TUM
-                         # slices (docs/notebook/real-blur-stage3.md, "Trained: the method's 0.5 against 0.8 and 0.7")
-                         initial_exposure_fraction=0.7,
-                         # [ours] Kinect v1's rolling shutter where the reading names one (TUM fr1, 7-Scenes): held-out
-                         # re-blur +2.3 dB on two TUM stretches, +0.16 to +0.30 dB on two 7-Scenes slices, at 1.11x the
-                         # stage-3 time (docs/notebook/benchmarks-2026-11.md, "A rolling shutter in TUM's Kinect
-                         # frames")
-                         camera_readout=True),
-}
-
-
-@dataclass
-class DeblurResult:
-    mid_poses: np.ndarray  # (N, 4, 4) mid-exposure camera-to-world
-    exposure: np.ndarray  # (N, 2, 4, 4) start and end
-    train: list[int]
-    test: list[int]
-    loss_history: list[dict[str, float]]
-    gaussians: int
-    seconds_per_iteration: float
-    warnings: list[str] = field(default_factory=list)
-    readout_ms: float = 0.0  # the rolling shutter's readout modelled (0: a global shutter)
-
-    def summary(self) -> str:
-        """One line for the console; ``warnings`` are reported separately, one per line."""
-        shutter = f", rolling shutter {self.readout_ms:g} ms" if self.readout_ms > 0 else ""
-        return (f"{self.gaussians} Gaussians, {len(self.train)} train / {len(self.test)} test views, "
-                f"{self.seconds_per_iteration * 1000:.0f} ms/iteration{shutter}")
-
-
-def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int]]:
-    """(train, test) frame indices: frames 1, 1 + h, 1 + 2h, ... are test views (none if h is 0)."""
-    test = list(range(1, n_frames, holdout_every)) if holdout_every > 0 else []
-    held_out = set(test)
-    train = [i for i in range(n_frames) if i not in held_out]
-    if not train:
-        raise InputError(None, f"no training frames left with holdout_every={holdout_every}",
-                         "use --holdout none or a larger value")
-    return train, test
-
-
-def with_headroom(config: DeblurConfig, handed_over: int) -> DeblurConfig:
-    """``config`` with ``max_gaussians`` raised to ``densify_headroom`` x the ``handed_over`` Gaussians when
-    that is more."""
-    wanted = math.ceil(config.densify_headroom * handed_over)
-    return config if wanted <= config.max_gaussians else dataclasses.replace(config, max_gaussians=wanted)
-
-
-def scaled_schedule(config: DeblurConfig, n_train: int) -> DeblurConfig:
-    """``config`` with ``iterations`` raised to ``iterations_per_view`` x ``n_train`` when that is more,
-    and the iteration counts of its densification and exposure windows scaled by the same factor."""
-    wanted = config.iterations_per_view * n_train
-    if wanted <= config.iterations:
-        return config
-    factor = wanted / config.iterations
-    return dataclasses.replace(
-        config, iterations=wanted, densify_from=round(config.densify_from * factor),
-        densify_until=round(config.densify_until * factor), densify_every=max(1, round(config.densify_every * factor)),
-        exposure_from=round(config.exposure_from * factor), iterations_per_view=0)
-
-
-def training_frame(train: list[int], iteration: int, rng: np.random.Generator, seed: int, epochs: bool) -> int:
-    """The frame trained at ``iteration``: uniform at random, or (``epochs``) every training view once
-    per epoch of len(train) iterations, in an order that depends only on ``seed`` and the epoch."""
-    if not epochs:
-        return train[int(rng.integers(len(train)))]
-    epoch, place = divmod(iteration, len(train))
-    return train[int(np.random.default_rng([seed, epoch]).permutation(len(train))[place])]
-
-
-def choose_split(colors: list[np.ndarray], holdout: str, holdout_every: int) -> tuple[list[int], list[int], list[float]]:
-    """(train, test, sharpness): ``holdout`` "every" takes :func:`split_frames`; "sharpest" holds out
-    the sharpest frame (``noreference.laplacian_variance``) of each window of ``holdout_every`` frames
-    that lies between two training frames (:func:`noreference.sharpest_holdout`)."""
-    sharpness = [laplacian_variance(c) for c in colors]
-    if holdout == "every":
-        return (*split_frames(len(colors), holdout_every), sharpness)
-    if holdout != "sharpest":
-        raise InputError(None, f"unknown holdout mode {holdout!r}", 'set [deblur] holdout to "every" or "sharpest"')
-    if holdout_every == 1 or len(colors) < 2:
-        raise InputError(None, f"cannot hold out the sharpest of every {holdout_every} of {len(colors)} frames",
-                         "use holdout_every >= 2 (or 0) and at least 2 frames")
-    return (*sharpest_holdout(sharpness, holdout_every), sharpness)
-
-
-def load_stage2(out_dir: Path, frame_times: np.ndarray) -> tuple[np.ndarray, Splats]:
-    """Stage-2 poses (N, 4, 4) and splats from OUT/refine/, made for the frames stamped ``frame_times``."""
-    poses_path, splats_path = out_dir / "refine" / "trajectory.txt", out_dir / "refine" / "splats.ply"
-    for path in (poses_path, splats_path):
-        if not path.is_file():
-            raise InputError(path, "stage-2 output missing", "run 'taichi-gs refine' first")
-    timestamps, poses = read_tum(poses_path)
-    check_frame_times(poses_path, timestamps, frame_times, "rerun stage 2 on this sequence")
-    splats = read_splats(splats_path)
-    if len(splats) == 0:
-        raise InputError(splats_path, "no Gaussians", "rerun stage 2")
-    return poses, splats
-
-
-def with_sh_degree(splats: Splats, degree: int) -> Splats:
-    """The splats with SH bands up to ``degree`` (higher bands added as zeros or dropped)."""
-    m = (degree + 1) ** 2
-    sh = np.zeros((len(splats), m, 3), np.float32)
-    keep = min(m, splats.sh.shape[1])
-    sh[:, :keep] = splats.sh[:, :keep]
-    return dataclasses.replace(splats, sh=sh)
-
-
-def initial_offsets(poses: np.ndarray, fraction: float) -> np.ndarray:
-    """(N, 2, 6) start/end offsets: -+ half of ``fraction`` of each frame's velocity twist (the
-    mean of the motions to its neighbours, in its own frame), so every exposure starts open."""
-    n = len(poses)
-    offsets = np.zeros((n, 2, 6))
-    for i in range(n):
-        ahead = se3_log(invert(poses[i]) @ poses[i + 1]) if i + 1 < n else None
-        behind = -se3_log(invert(poses[i]) @ poses[i - 1]) if i > 0 else None
-        steps = [s for s in (ahead, behind) if s is not None]
-        velocity = np.mean(steps, axis=0) if steps else np.zeros(6)
-        offsets[i] = [-0.5 * fraction * velocity, 0.5 * fraction * velocity]
-    return offsets
-
-
-def exposure_px(d_start: np.ndarray, d_end: np.ndarray, focal: float, depth: float) -> float:
-    """Approximate image travel (pixels) over an exposure for points at ``depth``."""
-    delta = np.asarray(d_end) - np.asarray(d_start)
-    return float(focal * (np.linalg.norm(delta[:3]) / depth + np.linalg.norm(delta[3:])))
-
-
-def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, depth: float) -> np.ndarray:
-    """Re-open an exposure that closed below ``min_px`` on the image: stretch d_e - d_s about its
-    middle (or, if it vanished, take ``fallback``'s direction) to ``min_px``."""
-    span = exposure_px(d[0], d[1], focal, depth)
-    if span >= min_px:
-        return d
-    middle = 0.5 * (d[0] + d[1])
-    half = 0.5 * (d[1] - d[0]) if span > 1e-3 * min_px else 0.5 * (fallback[1] - fallback[0])
-    scale = min_px / max(exposure_px(-half, half, focal, depth), 1e-12)
-    return np.stack([middle - scale * half, middle + scale * half])
-
-
-def shrink_mid(d: np.ndarray, decay: float) -> np.ndarray:
-    """Exposure offsets (start, end) whose mid offset (their mean) shrank by the share ``decay``, span unchanged."""
-    return d - decay * d.mean(axis=0) if decay > 0 else d
-
-
-def _downsample_color(color: np.ndarray, scale: int) -> np.ndarray:
-    """Area average over scale x scale blocks (pixel i covers inputs scale*i .. scale*i + scale - 1)."""
-    if scale == 1:
-        return color
-    h, w = color.shape[0] // scale, color.shape[1] // scale
-    return cv2.resize(color[: h * scale, : w * scale], (w, h), interpolation=cv2.INTER_AREA)
-
-
-def _area_intrinsics(K: np.ndarray, scale: int) -> np.ndarray:
-    """Intrinsics of the block-averaged image (block centre at scale*i + (scale - 1)/2)."""
-    K = scaled_intrinsics(K, scale)
-    K[0, 2] += (scale // 2 - (scale - 1) / 2) / scale
-    K[1, 2] += (scale // 2 - (scale - 1) / 2) / scale
-    return K
-
-
-@dataclass
-class _Frames:
-    """The sequence at training resolution."""
-
-    colors: list[np.ndarray]
-    depths: list[np.ndarray]
-    median_depth: np.ndarray
-    K: np.ndarray
-    sourced: np.ndarray | None = None  # H x W bool: pixels the losses use (None: all)
-
-
-def _load_frames(sequence: Sequence, scale: int, sourced: np.ndarray | None,
-                 depth_source: Sequence | DeskewedSequence | None = None) -> _Frames:
-    """The frames at 1/``scale`` resolution, depth read from ``depth_source`` (None: ``sequence``); ``sourced``
-    (full resolution, or None) is shrunk alike, a pixel kept only if its whole block is sourced."""
-    colors = [_downsample_color(sequence.color(i), scale) for i in range(len(sequence))]
-    h, w = colors[0].shape[:2]
-    depth_source = sequence if depth_source is None else depth_source
-    depths = [downsample_depth(depth_source.depth(i), scale)[:h, :w] for i in range(len(sequence))]
-    if sourced is not None:
-        sourced = _downsample_color(sourced.astype(np.float32), scale) >= SOURCED
-    return _Frames(colors, depths, median_depths(depths), _area_intrinsics(sequence.K(), scale), sourced)
-
-
-def loss_mask(sequence: Sequence, config: DeblurConfig) -> np.ndarray | None:
-    """Full-resolution pixels stage 3's photometric losses use: ``Sequence.sourced_pixels`` with
-    ``sourced_pixels_only``, else None (all)."""
-    if not config.sourced_pixels_only:
-        return None
-    sourced = sequence.sourced_pixels()
-    return None if sourced.all() else sourced
-
-
-def _scene_extent(poses: np.ndarray, means: np.ndarray) -> float:
-    """Radius of the scene: the 90th percentile distance of the Gaussians from the cameras' centroid."""
-    centre = poses[:, :3, 3].mean(axis=0)
-    return float(max(np.percentile(np.linalg.norm(means - centre, axis=1), 90), 1e-3))
+MAX_SKEW_MARGIN_SCALE = 4.0  # [ours] a rolling shutter widens the anchors' margin by at most this many warp_px
 
 
 def run_deblur(
@@ -482,118 +88,139 @@ def run_deblur(
     frames = _load_frames(sequence, config.resolution_scale, sourced, depth_source)
     train, test, sharpness = choose_split(frames.colors, config.holdout, config.holdout_every)
     config = with_headroom(scaled_schedule(config, len(train)), len(splats))
-    height, width = frames.colors[0].shape[:2]
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
-    shutter = _Shutter(motions, frames.median_depth)
-    model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced,
-                      warp_margin=warp_margin(config, shutter.skew_px(frames.K[0, 0], config)))
+    shutter = _Shutter(motions, frames.median_depth, MAX_SKEW_MARGIN_SCALE * config.warp_px)
     centres = poses[train, :3, 3]
-    if config.init_max_px > 0:
-        limit = footprint_limit(model.arrays()["means"], centres, frames.K[0, 0], config.init_max_px)
-        model.density.split_oversized(model.store, limit, config.max_gaussians, np.random.default_rng([config.seed, 1]))
-    if config.spatial_order:
-        model.order_in_space()
-    start = initial_offsets(poses, config.initial_exposure_fraction)
-    offsets = start.copy()
-    exposure_adam = RowAdam(len(sequence), (2, 6))
-    colours = np.repeat(IDENTITY[None], len(sequence), axis=0)
-    colour_adam = RowAdam(len(sequence), (3, 4))
+    model = _initial_model(splats, frames, centres, shutter, config)
+    exposures = Exposures(poses, config)
     rng = np.random.default_rng(config.seed)
-    history: list[dict[str, float]] = []
-    first = 0
-
     checkpoint_path = stage_dir / "checkpoint.npz"
-    saved = checkpoint.load(checkpoint_path, config)
-    if saved is not None and saved.arrays["offsets"].shape == offsets.shape:
-        first, history = saved.iteration, saved.records["history"]
-        offsets, colours = saved.arrays["offsets"].copy(), saved.arrays["colours"].copy()
-        exposure_adam.load_state(saved.arrays, "exposure")
-        colour_adam.load_state(saved.arrays, "colour")
-        model.load_state(saved.prefixed("model"))
-        rng.bit_generator.state = saved.records["rng"]
+    first, history = _resume(checkpoint_path, config, exposures, model, rng)
 
     guard = DivergenceGuard("stage 3 (deblur)", splats.means.mean(axis=0), extent)
     full, phase = frames, {config.resolution_scale: frames}
     t0 = time.perf_counter()
     for it in range(first, config.iterations):
         fraction = it / max(config.iterations - 1, 1)
+        # sample: the phase's resolution (coarse-to-fine), the frame, and the density schedule in its pixels
         scale = training_scale(it, config.iterations, config.resolution_scale, config.coarse_scale,
                                config.coarse_fraction)
         frames, model = _phase(sequence, sourced, model, phase, scale)
         frame = training_frame(train, it, rng, config.seed, config.epoch_sampling)
-        rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
-                      quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
-                      colors=config.lr_colors)
-        k, anchors = _exposure_sampling(offsets[frame], frames, frame, config, fraction)
-        # the density schedule in this phase's pixels (coarse-to-fine changes the training width)
         density = density_schedule(config, extent, model.width, centres, frames.K[0, 0])
-        step = model.step(frames.colors[frame], frames.depths[frame], poses[frame], offsets[frame, 0], offsets[frame, 1],
-                          k, config.lambda_dssim, config.lambda_depth, rates,
-                          colours[frame] if config.colour_affine else None,
-                          anchors=anchors, fallback_depth=frames.median_depth[frame],
-                          observe=density.observes(it + 1), readout_motion=shutter.motions[frame])
+        # step: the scene's Adam step on the frame's re-blurred render
+        step = _train_step(model, frames, frame, exposures, config, fraction, extent, density.observes(it + 1),
+                           shutter.motions[frame])
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
+        # update: the frame's exposure and colour, once the scene has settled
         if it >= config.exposure_from:
             lr_exposure = exp_decay(config.lr_exposure, config.lr_exposure_final, fraction)
-            updated = exposure_adam.step(frame, offsets[frame], np.stack([step.grad_start, step.grad_end]), lr_exposure)
-            updated = shrink_mid(updated, config.mid_exposure_decay)
-            offsets[frame] = keep_open(updated, start[frame], config.min_open_px, full.K[0, 0], full.median_depth[frame])
-            if config.colour_affine:
-                colours[frame] = _colour_step(colour_adam, colours[frame], step.grad_colour, frame, config)
+            exposures.update(frame, step.grad_start, step.grad_end, step.grad_colour, lr_exposure, full.K[0, 0],
+                             full.median_depth[frame])
         loss = (1 - config.lambda_dssim) * step.losses["l1"] + config.lambda_dssim * step.losses["dssim"] \
             + config.lambda_depth * step.losses["depth"]
         if (it + 1) % 10 == 0 or it == config.iterations - 1:
             history.append({"iteration": it + 1, "loss": loss, "psnr": step.psnr, **step.losses, "gaussians": model.count})
-        also = None
-        if config.densify_by != "gradient" and density.densifies(it + 1):
-            also = error_rows(model, frames, train, poses, offsets, colours if config.colour_affine else None,
-                              config, rng)
-        model.density.step(it + 1, model.store, density, rng, also)
-        if config.fill_uncovered and density.densifies(it + 1):
-            for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
-                fill_uncovered(model, frames.colors[f], frames.depths[f], virtual_pose(poses[f], *offsets[f], 0.5),
-                               frames.K, config.fill_stride, config.max_gaussians, rng,
-                               min(config.fill_stride, config.split_px or config.fill_stride))
-        if config.prune_weight_share > 0 and density.last_densification(it + 1):
-            mids = [virtual_pose(poses[f], *offsets[f], 0.5) for f in train]
-            model.density.drop_lightest(model.store, model.blending_weights(mids), config.prune_weight_share)
-        if config.spatial_order and density.densifies(it + 1):
-            model.order_in_space()
+        # density: densify and prune, fill, drop the lightest, reorder
+        _densify(model, density, it + 1, frames, train, exposures, config, rng)
         if progress is not None:
             progress(it + 1, config.iterations, loss=loss, psnr=step.psnr, gaussians=model.count)
+        # checkpoint: the parameters checked, the state saved
         if (it + 1) % PARAMETER_CHECK_EVERY == 0 or (it + 1) % config.checkpoint_every == 0 \
                 or it == config.iterations - 1:
             params = model.arrays()
-            guard.check_parameters(it, params["means"], offsets, *params.values())
+            guard.check_parameters(it, params["means"], exposures.offsets, *params.values())
         if (it + 1) % config.checkpoint_every == 0 and it + 1 < config.iterations:
             checkpoint.save(checkpoint_path, it + 1, config,
-                            {"offsets": offsets, "colours": colours, **exposure_adam.state("exposure"),
-                             **colour_adam.state("colour"), **checkpoint.prefixed("model", model.state())},
+                            {**exposures.state(), **checkpoint.prefixed("model", model.state())},
                             {"history": history, "rng": rng.bit_generator.state})
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
     frames, model = _phase(sequence, sourced, model, phase, config.resolution_scale)
     for frame in test:
         if config.test_fit_from_neighbours:
-            offsets[frame] = offsets[frame] + neighbours_mid_shift(offsets, train, frame)
-        offsets[frame], colours[frame] = _refine_test_exposure(model, frames, poses[frame], offsets[frame], start[frame],
-                                                               frame, config, shutter.motions[frame])
-    warnings = _step_warnings(offsets, train, frames, config)
+            exposures.start_from_neighbours(frame, train)
+        exposures.offsets[frame], exposures.colours[frame] = _refine_test_exposure(
+            model, frames, poses[frame], exposures.offsets[frame], exposures.start[frame], frame, config,
+            shutter.motions[frame])
+    warnings = _step_warnings(exposures.offsets, train, frames, config)
     splats, shift = model.splats(), None
     if config.keep_frame:
-        splats, poses, offsets, shift = back_to_stage_2s_frame(splats, poses, offsets, train,
-                                                                config.keep_frame_scale_error)
+        splats, exposures.poses, exposures.offsets, shift = back_to_stage_2s_frame(
+            splats, poses, exposures.offsets, train, config.keep_frame_scale_error)
     result = DeblurResult(
-        mid_poses=np.stack([virtual_pose(poses[i], *offsets[i], 0.5) for i in range(len(sequence))]),
-        exposure=np.stack([[virtual_pose(poses[i], *offsets[i], tau) for tau in (0.0, 1.0)] for i in range(len(sequence))]),
+        mid_poses=np.stack(exposures.mid_poses()), exposure=exposures.ends(),
         train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
         warnings=warnings, readout_ms=readout_ms,
     )
-    _write_outputs(stage_dir, sequence, splats, poses, offsets, result, config, sharpness,
-                   colours if config.colour_affine else None, shift, shutter)
+    _write_outputs(stage_dir, sequence, splats, exposures, result, config, sharpness, shift, shutter)
     checkpoint_path.unlink(missing_ok=True)
     return result
+
+
+def _initial_model(splats: Splats, frames: _Frames, centres: np.ndarray, shutter: _Shutter,
+                   config: DeblurConfig) -> BlurScene:
+    """The trainable scene at training resolution; with ``init_max_px`` its Gaussians wider than that seen from
+    the nearest training camera (``centres``) split, with ``spatial_order`` in Morton order."""
+    height, width = frames.colors[0].shape[:2]
+    model = BlurScene(splats, frames.K, width, height, sourced=frames.sourced,
+                      warp_margin=warp_margin(config, shutter.skew_px(frames.K[0, 0])))
+    if config.init_max_px > 0:
+        limit = footprint_limit(model.arrays()["means"], centres, frames.K[0, 0], config.init_max_px)
+        model.density.split_oversized(model.store, limit, config.max_gaussians, np.random.default_rng([config.seed, 1]))
+    if config.spatial_order:
+        model.order_in_space()
+    return model
+
+
+def _resume(path: Path, config: DeblurConfig, exposures: Exposures, model: BlurScene,
+            rng: np.random.Generator) -> tuple[int, list[dict[str, float]]]:
+    """(first iteration, loss history) of a run: a checkpoint's made with ``config`` (the exposures, the
+    scene and the RNG restored from it), else (0, [])."""
+    saved = checkpoint.load(path, config)
+    if saved is None or not exposures.matches(saved.arrays):
+        return 0, []
+    exposures.load_state(saved.arrays)
+    model.load_state(saved.prefixed("model"))
+    rng.bit_generator.state = saved.records["rng"]
+    return saved.iteration, saved.records["history"]
+
+
+def _train_step(model: BlurScene, frames: _Frames, frame: int, exposures: Exposures, config: DeblurConfig,
+                fraction: float, extent: float, observe: bool, readout_motion: np.ndarray) -> BlurStep:
+    """One training step on ``frame`` at ``fraction`` of the run: its exposure's views sampled
+    (:func:`_exposure_sampling`), the scene's parameters stepped at their rates (the means' decayed and
+    in units of the scene ``extent``), the exposure's and colour's gradients returned."""
+    rates = Rates(means=exp_decay(config.lr_means, config.lr_means_final, fraction) * extent,
+                  quats=config.lr_quats, log_scales=config.lr_scales, opacity_logits=config.lr_opacity,
+                  colors=config.lr_colors)
+    d = exposures.offsets[frame]
+    k, anchors = _exposure_sampling(d, frames, frame, config, fraction)
+    return model.step(frames.colors[frame], frames.depths[frame], exposures.poses[frame], d[0], d[1], k,
+                      config.lambda_dssim, config.lambda_depth, rates, exposures.colour(frame), anchors=anchors,
+                      fallback_depth=frames.median_depth[frame], observe=observe, readout_motion=readout_motion)
+
+
+def _densify(model: BlurScene, density: DensitySchedule, done: int, frames: _Frames, train: list[int],
+             exposures: Exposures, config: DeblurConfig, rng: np.random.Generator) -> None:
+    """Density control after ``done`` iterations: 3DGS's (and [ours] ``densify_by`` error's) growth and
+    pruning, [ours] ``fill_uncovered``, ``prune_weight_share`` after the last densification, and
+    ``spatial_order``."""
+    also = None
+    if config.densify_by != "gradient" and density.densifies(done):
+        also = error_rows(model, frames, train, exposures, config, rng)
+    model.density.step(done, model.store, density, rng, also)
+    if config.fill_uncovered and density.densifies(done):
+        for f in rng.choice(train, size=min(config.fill_frames, len(train)), replace=False):
+            fill_uncovered(model, frames.colors[f], frames.depths[f], exposures.mid_pose(f), frames.K,
+                           config.fill_stride, config.max_gaussians, rng,
+                           min(config.fill_stride, config.split_px or config.fill_stride))
+    if config.prune_weight_share > 0 and density.last_densification(done):
+        weights = model.blending_weights(exposures.mid_poses(train))
+        model.density.drop_lightest(model.store, weights, config.prune_weight_share)
+    if config.spatial_order and density.densifies(done):
+        model.order_in_space()
 
 
 def _views(d: np.ndarray, focal: float, depth: float, config: DeblurConfig, fraction: float = 1.0) -> int:
@@ -619,8 +246,6 @@ def _exposure_sampling(d: np.ndarray, frames: _Frames, frame: int, config: Deblu
     return k, anchors
 
 
-MAX_SKEW_MARGIN_SCALE = 4.0  # [ours] a rolling shutter widens the anchors' margin by at most this many warp_px
-
 
 def warp_margin(config: DeblurConfig, shutter_px: float = 0.0) -> int:
     """[ours] Pixels added on each side of an anchor render (0 without ``warp_views``); ``shutter_px`` more
@@ -637,89 +262,17 @@ def _anchors(d: np.ndarray, focal: float, depth: float, config: DeblurConfig, k:
     return anchor_count(k, math.ceil(exposure_px(d[0], d[1], focal, depth) / (2.0 * config.warp_px)))
 
 
-def _phase(sequence: Sequence, sourced: np.ndarray | None, model: BlurScene, cache: dict[int, _Frames],
-           scale: int) -> tuple[_Frames, BlurScene]:
-    """[ours] Coarse-to-fine: the frames at resolution divisor ``scale`` (loaded once) and ``model``
-    moved to that resolution (the same Gaussians, Adam moments and densification statistics)."""
-    if scale not in cache:
-        cache[scale] = _load_frames(sequence, scale, sourced)
-    frames = cache[scale]
-    height, width = frames.colors[0].shape[:2]
-    if (model.width, model.height) != (width, height):
-        moved = BlurScene(model.splats(), frames.K, width, height, sourced=frames.sourced,
-                          warp_margin=model.warp_margin)
-        moved.load_state(model.state())
-        model = moved
-    return frames, model
-
-
-def nearest_filled(depth: np.ndarray) -> np.ndarray:
-    """``depth`` with every 0 replaced by the nearest (L2) positive value; all zeros stay zeros."""
-    valid = depth > 0
-    if valid.all() or not valid.any():
-        return depth
-    _, labels = cv2.distanceTransformWithLabels((~valid).astype(np.uint8), cv2.DIST_L2, 5,
-                                                labelType=cv2.DIST_LABEL_PIXEL)
-    lookup = np.zeros(labels.max() + 1, depth.dtype)
-    lookup[labels[valid]] = depth[valid]
-    return lookup[labels]
-
-
-def fill_uncovered(model: BlurScene, color: np.ndarray, depth: np.ndarray, cam_to_world: np.ndarray, K: np.ndarray,
-                   stride: int, max_gaussians: int, rng: np.random.Generator, radius_px: float | None = None) -> int:
-    """Add Gaussians where the render of a view has alpha < 0.5 (among the pixels the camera saw, if the
-    model has a sourced mask): one per ``stride`` pixels (a random phase), coloured by the input, at
-    the sensor depth, else the scene's rendered depth (alpha >= 0.5), else the nearest pixel's such
-    depth; radius (sigma) ``radius_px`` pixels' footprint (default: the stride). Returns how many."""
-    rendered, alpha = model.coverage(cam_to_world)
-    known = np.where(depth > 0, depth, np.where(alpha >= 0.5, rendered, 0.0))
-    grid = np.zeros(alpha.shape, bool)
-    oy, ox = rng.integers(stride, size=2)
-    grid[oy::stride, ox::stride] = True
-    if model.sourced is not None:
-        grid &= model.sourced
-    v, u = np.nonzero((alpha < 0.5) & grid)
-    room = max(max_gaussians - model.count, 0)
-    if len(v) == 0 or room == 0 or not (known > 0).any():
-        return 0
-    if len(v) > room:
-        keep = rng.choice(len(v), size=room, replace=False)
-        v, u = v[keep], u[keep]
-    z = nearest_filled(known)[v, u].astype(np.float64)
-    points = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
-    model.add_gaussians(points @ cam_to_world[:3, :3].T + cam_to_world[:3, 3], color[v, u],
-                        (radius_px or stride) * z / K[0, 0], opacity=0.5)
-    return len(v)
-
-
-def error_rows(model: BlurScene, frames: _Frames, train: list[int], poses: np.ndarray, offsets: np.ndarray,
-               colours: np.ndarray | None, config: DeblurConfig, rng: np.random.Generator) -> np.ndarray:
+def error_rows(model: BlurScene, frames: _Frames, train: list[int], exposures: Exposures, config: DeblurConfig,
+               rng: np.random.Generator) -> np.ndarray:
     """[ours] The ``error_densify_share`` of the Gaussians with the most re-blur error mass
     (``BlurScene.error_mass``, summed over ``error_densify_frames`` random training views), most first."""
     mass = np.zeros(model.count)
     for f in rng.choice(train, size=min(config.error_densify_frames, len(train)), replace=False):
-        k = _views(offsets[f], frames.K[0, 0], frames.median_depth[f], config)
-        mass += model.error_mass(frames.colors[f], poses[f], offsets[f, 0], offsets[f, 1], k,
-                                 None if colours is None else colours[f])
+        d = exposures.offsets[f]
+        k = _views(d, frames.K[0, 0], frames.median_depth[f], config)
+        mass += model.error_mass(frames.colors[f], exposures.poses[f], d[0], d[1], k, exposures.colour(f))
     ranked = np.argsort(-mass, kind="stable")[: int(config.error_densify_share * model.count)]
     return ranked[mass[ranked] > 0]
-
-
-def density_schedule(config: DeblurConfig, extent: float, width: int, centres: np.ndarray,
-                     focal: float) -> DensitySchedule:
-    """The config's density control in the policy's units (pixels, metres); ``centres`` and ``focal``
-    (training cameras, this resolution) for ``split_px``."""
-    # mean pixel gradient -> NDC gradient as 3DGS measures it (d ndc = 2 / W d pixel)
-    threshold = np.inf if config.densify_by == "error" else config.densify_grad * 2.0 / width
-    return DensitySchedule(config.densify_from, config.densify_until, config.densify_every, threshold,
-                           config.split_scale * extent, config.prune_opacity, config.prune_scale * extent,
-                           config.max_gaussians, config.reset_opacity_every, config.split_px, centres, focal)
-
-
-def _colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:
-    """One Adam step of a frame's affine colour transform on its loss gradient plus the identity pull."""
-    _, pull = identity_penalty(M, config.lambda_colour_affine)
-    return adam.step(frame, M, grad + pull, config.lr_colour_affine)
 
 
 def _rprop_step(shape: tuple[int, ...], rate: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
@@ -736,16 +289,17 @@ def _test_fit_steps(config: DeblurConfig) -> tuple[Callable[[np.ndarray, np.ndar
         return exposure, lambda M, grad: colour(M, grad + identity_penalty(M, config.lambda_colour_affine)[1])
     exposure_adam, colour_adam = RowAdam(1, (2, 6)), RowAdam(1, (3, 4))
     return (lambda d, grad: exposure_adam.step(0, d, grad, config.lr_test_pose),
-            lambda M, grad: _colour_step(colour_adam, M, grad, 0, config))
+            lambda M, grad: colour_step(colour_adam, M, grad, 0, config))
 
 
+@profiling.timed("test-view exposure fits")
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
                           frame: int, config: DeblurConfig,
                           readout_motion: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fit a held-out frame's exposure offsets (and, with ``colour_affine``, its colour transform),
     scene frozen, by re-blurring against its blurred input (``config.test_fit``: Adam or Rprop); a rolling
     shutter's ``readout_motion`` as in :meth:`BlurScene.step`."""
-    exposure_step, colour_step = _test_fit_steps(config)
+    exposure_fit, colour_fit = _test_fit_steps(config)
     colour = IDENTITY.copy()
     frozen = None
     if config.warp_views and config.test_fit_refresh_px > 0:
@@ -758,135 +312,11 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
                           anchors=anchors, fallback_depth=frames.median_depth[frame], frozen=frozen,
                           readout_motion=readout_motion)
         guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
-        d = shrink_mid(exposure_step(d, np.stack([step.grad_start, step.grad_end])), config.mid_exposure_decay)
+        d = shrink_mid(exposure_fit(d, np.stack([step.grad_start, step.grad_end])), config.mid_exposure_decay)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
         if config.colour_affine:
-            colour = colour_step(colour, step.grad_colour)
+            colour = colour_fit(colour, step.grad_colour)
     return d, colour
-
-
-def neighbours_mid_shift(offsets: np.ndarray, train: list[int], frame: int) -> np.ndarray:
-    """[ours] The mean mid-exposure correction, (d_s + d_e) / 2, of the nearest training frame before and
-    after ``frame`` (those there are; zeros without any): where a held-out frame's fit starts its exposure
-    (each correction is in its own frame's coordinates, taken as the held-out frame's: neighbours turn little)."""
-    before = [j for j in train if j < frame]
-    after = [j for j in train if j > frame]
-    nearest = ([max(before)] if before else []) + ([min(after)] if after else [])
-    if not nearest:
-        return np.zeros(6)
-    return np.mean([0.5 * (offsets[j, 0] + offsets[j, 1]) for j in nearest], axis=0)
-
-
-def _step_warnings(offsets: np.ndarray, train: list[int], frames: _Frames, config: DeblurConfig) -> list[str]:
-    """A warning if adjacent virtual views move more than ``max_step_px`` (k is then too small)."""
-    if config.k < 2:
-        return []
-    steps = [exposure_px(*offsets[i], frames.K[0, 0], frames.median_depth[i]) / (config.k - 1) for i in train]
-    worst = int(np.argmax(steps))
-    if steps[worst] <= config.max_step_px:
-        return []
-    needed = math.ceil(steps[worst] * (config.k - 1) / config.max_step_px) + 1
-    return [f"adjacent virtual views move up to {steps[worst]:.2f} px (frame {train[worst]}) at the training "
-            f"resolution, more than {config.max_step_px:g} px: k = {config.k} is likely too small for this blur "
-            f"(--k {needed} keeps the steps under {config.max_step_px:g} px)"]
-
-
-@dataclass(frozen=True)
-class _Shutter:
-    """[ours] Each frame's rolling-shutter readout motion (N, 6; zeros: a global shutter) and its median sensor
-    depth (N,): where the skew is measured, and where a re-blurred render's rows are warped from a surface-less
-    pixel."""
-
-    motions: np.ndarray
-    median_depth: np.ndarray
-
-    def skew_px(self, focal: float, config: DeblurConfig) -> float:
-        """The most any frame's first or last row lies from its pose on the image (:func:`readout_px`, pixels at
-        focal ``focal``), at most ``MAX_SKEW_MARGIN_SCALE`` x ``warp_px``: a pose jump between neighbours must not
-        blow up the anchors' margin."""
-        skew = float(readout_skews(self.motions, focal, self.median_depth).max())
-        return min(skew, MAX_SKEW_MARGIN_SCALE * config.warp_px)
-
-
-def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   result: DeblurResult, config: DeblurConfig, sharpness: list[float],
-                   colours: np.ndarray | None, shift: FrameShift | None, shutter: _Shutter) -> None:
-    write_splats(stage_dir / "splats.ply", splats)
-    if shift is not None:
-        write_text(stage_dir / "frame.json", jsonout.dumps(shift.as_dict(), indent=2) + "\n")
-    else:
-        (stage_dir / "frame.json").unlink(missing_ok=True)
-    write_tum(stage_dir / "trajectory.txt", sequence.timestamps, result.mid_poses,
-              header="taichi-gs stage 3 (deblur), mid-exposure camera-to-world")
-    write_text(stage_dir / "exposure.txt", _format_exposure(sequence.timestamps, result.exposure))
-    write_text(stage_dir / "split.json", jsonout.dumps({"train": result.train, "test": result.test,
-                                                     "holdout_every": config.holdout_every, "holdout": config.holdout,
-                                                     "laplacian_variance": sharpness}, indent=2) + "\n")
-    if colours is not None:
-        write_text(stage_dir / "colour_affine.json", jsonout.dumps(
-            {"rows": "out = M[:, :3] @ rgb + M[:, 3]", "frames": {n: colours[i].round(6).tolist()
-                                                                  for i, n in enumerate(sequence.names)}}) + "\n")
-    _write_renders(stage_dir, sequence, splats, poses, offsets, config, result.test, colours, shutter)
-    history = result.loss_history
-    if history:
-        it = np.array([h["iteration"] for h in history], dtype=float)
-        line_plot(stage_dir / "loss.png", {"loss": (it, np.array([h["loss"] for h in history]))},
-                  "stage 3: deblurring loss", "iteration", "loss", log_y=True)
-    write_text(stage_dir / "history.json", jsonout.dumps(history) + "\n")
-
-
-def _format_exposure(timestamps: np.ndarray, exposure: np.ndarray) -> str:
-    """``timestamp`` then start and end poses as ``tx ty tz qx qy qz qw`` each, one frame a line."""
-    starts = format_tum(timestamps, exposure[:, 0]).splitlines()
-    ends = format_tum(timestamps, exposure[:, 1]).splitlines()
-    lines = ["# timestamp start(tx ty tz qx qy qz qw) end(tx ty tz qx qy qz qw), camera-to-world"]
-    lines += [f"{s} {e.split(maxsplit=1)[1]}" for s, e in zip(starts, ends)]
-    return "\n".join(lines) + "\n"
-
-
-def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   config: DeblurConfig, test: list[int], colours: np.ndarray | None, shutter: _Shutter) -> None:
-    """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame, and a grid;
-    with per-frame ``colours`` the colour renders are in each frame's own colour (its transform applied).
-    The sharp renders are global-shutter; the re-blurred ones read their rows as ``shutter`` does, and with a
-    rolling shutter ``renders/as_read/`` holds the sharp render read so (each row at its mid-exposure pose)."""
-    first = sequence.color(0)
-    K = sequence.K()
-    shutil.rmtree(stage_dir / "renders" / "as_read", ignore_errors=True)  # an earlier run's, with another readout
-    skew = shutter.skew_px(K[0, 0], config)
-    full = BlurScene(splats, K, first.shape[1], first.shape[0], warp_margin=math.ceil(skew) + 2 if skew > 0 else 0)
-    scale = sequence.intrinsics.depth_scale
-    rows, names = [], []
-    has_truth = sequence.sharp_paths is not None
-    grid_frames = set(_grid_frames(len(sequence), test, config.grid_frames))
-    for i, name in enumerate(sequence.names):
-        sharp, depth = full.render(virtual_pose(poses[i], *offsets[i], 0.5))
-        reblurred = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], config.k, shutter.motions[i],
-                                        shutter.median_depth[i])
-        as_read = None
-        if shutter.motions[i].any():  # the sharp render as the rolling shutter reads it: rows at their own poses
-            as_read = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], 1, shutter.motions[i],
-                                          shutter.median_depth[i])
-        if colours is not None:
-            sharp, reblurred = apply_affine(sharp, colours[i]), apply_affine(reblurred, colours[i])
-            as_read = None if as_read is None else apply_affine(as_read, colours[i])
-        write_png(stage_dir / "renders" / "sharp" / f"{name}.png", to_uint8(sharp))
-        write_png(stage_dir / "renders" / "reblurred" / f"{name}.png", to_uint8(reblurred))
-        if as_read is not None:
-            write_png(stage_dir / "renders" / "as_read" / f"{name}.png", to_uint8(as_read))
-        write_png(stage_dir / "renders" / "depth" / f"{name}.png", encode_depth(depth, scale))
-        if i in grid_frames:
-            rows.append([sequence.color(i), sharp] + ([sequence.sharp(i)] if has_truth else []))
-            names.append(name)
-    titles = ["blurred input", "deblurred (ours)"] + (["sharp ground truth"] if has_truth else [])
-    image_grid(stage_dir / "grid.png", rows, titles, names, min_width=0)
-
-
-def _grid_frames(n_frames: int, test: list[int], count: int) -> list[int]:
-    """A few frames spread over the sequence, test views first when there are any."""
-    pool = test or list(range(n_frames))
-    picks = np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)
-    return [pool[p] for p in sorted(set(picks))]
 
 
 def _run_stage(context: StageContext) -> StageRun:

@@ -32,6 +32,7 @@ class StageContext:
     progress: ProgressFactory
     poses: Path | None = None  # replaces stage 1's trajectory as stage 2's input
     points: Path | None = None  # replaces stage 1's fused cloud as stage 2's input
+    threads: int | None = None  # the threads a stage may run on (one under --profile); None: its config's
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from .. import profiling
 from ..errors import DivergenceError
 
 
@@ -45,6 +46,7 @@ class DivergenceGuard:
         else:
             self.strikes = 0
 
+    @profiling.timed("divergence checks (parameter download)")
     def check_parameters(self, iteration: int, means: np.ndarray, *others: np.ndarray) -> None:
         """Finite parameters, and Gaussian centres within reach of the scene."""
         for values in (means, *others):

@@ -89,6 +89,7 @@ def chain_poses(relatives: list[np.ndarray]) -> np.ndarray:
     return np.stack(poses)
 
 
+@profiling.timed("fused point cloud")
 def fuse_points(sequence, poses: np.ndarray, config: PoseConfig,
                 on_frame: Callable[[int], None] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """World points and colours of all frames' reliable depth, voxel-downsampled to ``voxel_size_m``;
@@ -116,10 +117,11 @@ def flow_provider(sequence, config: PoseConfig, frames: FrameCache) -> FlowProvi
 
 
 def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
-             progress: Callable[[int, int, str], None] | None = None) -> PoseResult:
+             progress: Callable[[int, int, str], None] | None = None, threads: int | None = None) -> PoseResult:
     """Stage 1 over a whole sequence, resuming from cached pairs; writes OUT/pose/ (see module doc).
     ``progress(done, total, step)`` counts the pairs (first "pairs as read" with a rolling shutter), then the
-    pose graph's frames, then the frames fused into the cloud (``step``: "pairs", "graph", "fused cloud")."""
+    pose graph's frames, then the frames fused into the cloud (``step``: "pairs", "graph", "fused cloud").
+    ``threads``: the caller's thread count, in place of the config's (:func:`stage_threads`)."""
     n = len(sequence)
     if n < 2:
         raise InputError(getattr(sequence, "root", None), f"sequence has {n} frame(s)", "give at least two frames")
@@ -134,10 +136,11 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
 
     shutter: dict | None = None
     as_read_seconds = 0.0
-    with _workers(stage_threads(config)) as pool:
+    threads = stage_threads(config, threads)
+    with _workers(threads) as pool:
         if readout_ms > 0:  # [ours] the pairs as read give each frame's motion over its readout; de-skew, redo
             as_read = _pair_estimates(sequence, FrameCache(sequence, K, config), pose_dir / "pairs_as_read", key,
-                                      config, pool, progress_of("pairs as read", 0))
+                                      config, pool, threads, progress_of("pairs as read", 0))
             motions, skew_px = deskewing_motions(sequence, readout_motions(
                 chain_poses([r.transform for r in as_read]), sequence.timestamps, readout_ms / 1000.0))
             sequence = DeskewedSequence(sequence, motions)
@@ -146,7 +149,7 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
             as_read_seconds = sum(r.seconds for r in as_read)
         frames = FrameCache(sequence, K, config)
         offset = n - 1 if readout_ms > 0 else 0
-        relatives = _pair_estimates(sequence, frames, pose_dir / "pairs", key, config, pool,
+        relatives = _pair_estimates(sequence, frames, pose_dir / "pairs", key, config, pool, threads,
                                     progress_of("pairs", offset))
         poses = chain_poses([r.transform for r in relatives])
         pairs = [_pair_record(k, sequence.names, r) for k, r in enumerate(relatives)]
@@ -171,13 +174,13 @@ def run_pose(sequence, out_dir: Path, config: PoseConfig = PoseConfig(),
 
 
 def _pair_estimates(sequence, frames: FrameCache, pair_dir: Path, key: str, config: PoseConfig, pool: Executor,
-                    on_pair: Callable[[int], None]) -> list[RelativePose]:
+                    threads: int, on_pair: Callable[[int], None]) -> list[RelativePose]:
     """Every pair (k, k+1) of ``frames``, each read from ``pair_dir`` when cached there under ``key``, else
-    estimated (the workers start the next pairs while this thread finishes one) and cached."""
+    estimated (the ``threads`` workers of ``pool`` start the next pairs while this thread finishes one) and
+    cached."""
     pair_dir.mkdir(parents=True, exist_ok=True)
     K = sequence.intrinsics.K()
     cached = [_load_pair(pair_dir / f"{k:06d}.json", key) for k in range(len(sequence) - 1)]
-    threads = stage_threads(config)
     started = _run_ahead(pool, [k for k, r in enumerate(cached) if r is None],
                          functools.partial(_start_pair_of, frames, flow_provider(sequence, config, frames), K, config),
                          ahead=2 * threads if threads > 1 else 0)
@@ -239,13 +242,11 @@ def _estimate_pair(frames: FrameCache, k: int, K: np.ndarray, config: PoseConfig
 DEFAULT_MAX_THREADS = 4
 
 
-def stage_threads(config: PoseConfig) -> int:
-    """Threads stage 1 runs on: ``config.threads``, 0 meaning one per available core up to
-    :data:`DEFAULT_MAX_THREADS`; one under --profile, whose sections are timed on one thread (the results are
-    the same)."""
-    if profiling.installed():
-        return 1
-    return config.threads or min(available_cores(), DEFAULT_MAX_THREADS)
+def stage_threads(config: PoseConfig, threads: int | None = None) -> int:
+    """Threads stage 1 runs on: ``threads`` when the caller gives it (one under --profile, whose sections are
+    timed on one thread; the results are the same), else ``config.threads``, 0 meaning one per available core
+    up to :data:`DEFAULT_MAX_THREADS`."""
+    return threads or config.threads or min(available_cores(), DEFAULT_MAX_THREADS)
 
 
 class _Inline(Executor):
@@ -338,7 +339,7 @@ def _run_stage(context: StageContext) -> StageRun:
     steps = progress_steps(len(context.sequence), context.config, pose_readout_ms(context.sequence, context.config))
     with context.progress(STAGE.title, steps) as update:
         result = run_pose(context.sequence, context.out, context.config,
-                          progress=lambda done, total, kind: update(done, total, step=kind))
+                          progress=lambda done, total, kind: update(done, total, step=kind), threads=context.threads)
     weak = sum(1 for p in result.pairs if p.get("weak"))
     shutter = result.rolling_shutter
     deskewed = (f"; frames de-skewed for a rolling shutter of {shutter['readout_ms']:g} ms (rows up to "

@@ -8,6 +8,7 @@ from concurrent.futures import Executor
 
 import numpy as np
 
+from .. import profiling
 from ..geometry import invert
 from ..icp import align, depth_cloud, open3d, rgbd_odometry
 from ..io.jsonout import finite_or_null
@@ -144,7 +145,7 @@ def _close(a: np.ndarray, b: np.ndarray, config: PoseConfig) -> np.ndarray:
 def _long_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, int]]:
     """(i, i + k) for every span k in graph_long_spans and every graph_long_every-th frame i whose chained
     cameras are close (:func:`_close`)."""
-    every = config.graph_long_every  # at least 1: validation.FIELD_RULES
+    every = config.graph_long_every  # at least 1: its rule in pose_config
     return [(int(i), int(i) + k) for k in config.graph_long_spans if k < len(poses)
             for i in np.flatnonzero(_close(poses[:len(poses) - k:every], poses[k::every], config)) * every]
 
@@ -162,6 +163,7 @@ def _loop_candidates(poses: np.ndarray, config: PoseConfig) -> list[tuple[int, i
     return pairs
 
 
+@profiling.timed("pose graph: information matrices")
 def _information(frames: FrameCache, i: int, j: int, T: np.ndarray, config: PoseConfig) -> np.ndarray:
     """Open3D's point-to-point information matrix of the edge i -> j, reordered to [translation, rotation]."""
     info = np.asarray(open3d().pipelines.registration.get_information_matrix_from_point_clouds(

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from .. import profiling
 from ..flow import dis_flow, finite_flow, forward_backward_mask, rigid_flow, to_gray_u8
 from ..geometry import backproject, invert, se3_log
 from ..icp import ICPLevels, align, depth_cloud, prepare_icp, rgbd_odometry
@@ -32,8 +33,6 @@ FROM_JOINT = "joint"
 # ICP starts closer than this (every entry of the 4 x 4 transform) give one RGB-D odometry run: ICP from the
 # flow solve and ICP from the prior ended within 1e-9 of each other in 2862 of 3926 stored pairs
 SAME_START_ATOL = 1e-9
-# Names of a pair's candidates (see _candidates): what started what.
-CANDIDATE_NAMES = ("rgbd-icp", "rgbd-icp-prior", "rgbd-flow", "icp", "icp-prior", "joint", "flow", "constant-velocity")
 
 
 @dataclass
@@ -257,6 +256,7 @@ def _finish_pair(ahead: PairStart, color_t: np.ndarray, depth_t: np.ndarray, col
     return result
 
 
+@profiling.timed("flow solve (se(3))")
 def _flow_solve(samples: PairSamples, config: PoseConfig) -> tuple[np.ndarray | None, tuple[int, int], str]:
     """The method's two solver phases from identity: (transform or None, iterations, why not)."""
     if len(samples.points) < config.min_points:
@@ -291,6 +291,7 @@ def _candidates(ahead: PairStart, color_t: np.ndarray, depth_t: np.ndarray, colo
     return {name: found[name] for name in order if name in found}
 
 
+@profiling.timed("joint solve (se(3))")
 def add_joint(candidates: dict[str, Candidate], samples: PairSamples, start: np.ndarray, config: PoseConfig,
                name: str = FROM_JOINT) -> None:
     """[ours] The joint solve (``PoseConfig.joint_settings``: flow plus point-to-plane) from ``start`` as the
@@ -400,6 +401,7 @@ def icp_levels(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
     )
 
 
+@profiling.timed("flow samples")
 def sample_pair(
     color_t: np.ndarray, depth_t: np.ndarray, color_t1: np.ndarray, depth_t1: np.ndarray, K: np.ndarray,
     flow: np.ndarray, backward_flow: np.ndarray | None, source_mask: np.ndarray, config: PoseConfig,
@@ -427,6 +429,7 @@ def sample_pair(
     )
 
 
+@profiling.timed("depth normals")
 def joint_normals(depth: np.ndarray, K: np.ndarray, config: PoseConfig) -> np.ndarray | None:
     """Unit normals of a frame's reliable depth (NaN where undefined) for the joint solve's point-to-plane term,
     None without a joint solve (``verify`` and ``joint_solve``): central differences of the depth smoothed over

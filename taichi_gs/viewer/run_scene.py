@@ -14,9 +14,10 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import quat_to_rotmat
+from ..io.formats.own import read_exposure
 from ..io.images import to_uint8
 from ..io.ply import read_point_cloud, read_splats
-from ..io.sequence import Sequence, read_color, read_exposure
+from ..io.sequence import Sequence, read_color
 from ..io.trajectory import check_frame_times, read_tum
 from ..pipeline import STAGES, open_run_sequence
 from ..splats import SH_C0, Splats

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
-from ..sequence import Intrinsics, Sequence, _imread
+from ..sequence import Intrinsics, Sequence, read_image
 from ..transforms import ResampleColor
 from .common import NOMINAL_FPS, ReadOptions, numbered, pose_files, read_matrix
 
@@ -36,7 +36,7 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     if missing is not None:
         raise InputError(missing, "depth frame missing for its colour frame", "restore it or remove that colour frame")
     K_color, K_depth = (_matrix(root / "intrinsic" / f"intrinsic_{kind}.txt") for kind in ("color", "depth"))
-    height, width = _imread(depth_paths[0]).shape[:2]
+    height, width = read_image(depth_paths[0]).shape[:2]
     values = {"fx": K_depth[0, 0], "fy": K_depth[1, 1], "cx": K_depth[0, 2], "cy": K_depth[1, 2], "depth_scale": 1000.0,
               **options.override.values()}
     intrinsics = Intrinsics(width=width, height=height, **{k: float(v) for k, v in values.items()})

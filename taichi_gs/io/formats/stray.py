@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
-from ..sequence import Intrinsics, Sequence, _imread, read_depth
+from ..sequence import Intrinsics, Sequence, read_depth, read_image
 from ..transforms import MaskDepth, ResampleColor, scale_matrix, then
 from ..trajectory import tum_rows_to_poses
 from .common import ReadOptions, numbered, read_matrix
@@ -45,7 +45,7 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     if not matrix_path.is_file():
         raise InputError(matrix_path, "camera matrix missing", "write the colour camera's 3x3 intrinsics, one row per line")
     K_color = read_matrix(matrix_path, (3, 3), "camera matrix", "write a 3x3 matrix, one row per line")
-    color_h, color_w = _imread(rgb_paths[0]).shape[:2]
+    color_h, color_w = read_image(rgb_paths[0]).shape[:2]
     depth_scale = options.override.depth_scale or 1000.0
     height, width = read_depth(depth_paths[0], depth_scale).shape
     K = scale_matrix(K_color, width / color_w, height / color_h)
