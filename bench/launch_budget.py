@@ -8,7 +8,8 @@ the same figures come out on any machine with the same backend.
 Cases, each counted on its second call (the first compiles and sizes the buffers), on random Gaussians
 filling the view (``raster.scene``) against a random frame and a plane's depth:
 
-* ``render``: one virtual-view render, forward + backward (colour and depth gradients);
+* ``render``: one virtual-view render, forward + backward (colour and depth gradients), as a training step
+  renders each view: deferred (the slot count stays on the device), its pose gradient left in a device row;
 * ``stage 3 paper``: ``BlurScene.step`` as the paper preset takes it: k = 15 rendered views, SH degree 3,
   depth term, Adam, densification statistics;
 * ``stage 3 fast``: as the fast preset: k = 9 views warped from one padded anchor render, SH degree 0, the
@@ -66,7 +67,8 @@ def case(name: str, n: int, width: int, height: int) -> Callable[[], object]:
         camera = Camera(K, base, width, height)
         d_rgb = to_device(rng.normal(size=(height, width, 3)), gaussians.dtype)
         d_depth = to_device(rng.normal(size=(height, width)), gaussians.dtype)
-        return lambda: rasterizer.backward(gaussians, rasterizer.forward(gaussians, camera), d_rgb, d_depth)
+        return lambda: rasterizer.backward(gaussians, rasterizer.forward(gaussians, camera, deferred=True), d_rgb,
+                                           d_depth, pose_row=0)
     if name == "stage 3 paper":
         sh3 = np.concatenate([colors, np.zeros((n, 15, 3))], axis=1)
         paper = BlurScene(Splats(means, quats, log_scales, logits, sh3), K, width, height)

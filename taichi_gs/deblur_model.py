@@ -152,6 +152,7 @@ class BlurScene:
         self.grad_depth = to_device(np.zeros((height, width), np.float32), dtype)
         self.sourced = sourced
         self.l1_pixels, self.ssim_pixels = loss_pixels(sourced, dtype)
+        self.loss_values = losses.LossValues(dtype)  # a step's loss values, read once per step
         padded = (height + 2 * warp_margin, width + 2 * warp_margin)
         self.padded_depth_target = to_device(np.zeros(padded, np.float32), dtype)
         self.padded_grad_depth = to_device(np.zeros(padded, np.float32), dtype)
@@ -231,38 +232,57 @@ class BlurScene:
         rows = self.shutter_rows(readout_motion)
         if rows is not None and anchors < 1:
             raise ValueError("a rolling shutter (readout_motion) needs warped views (anchors)")
-        taus = exposure_taus(k)
         host_copy.write(self.frame, frame)
-        if anchors > 0:
-            fallback = median_depth(depth) if fallback_depth is None else fallback_depth
-            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen, rows)
-        else:
-            exposure = _RenderedExposure(self, base, d_start, d_end, taus)
-        predicted, grad_predicted = self.blurred, self.grad_blur
-        if colour is not None:  # the losses add into grad_compensated; the transform's backward writes grad_blur
-            affine.forward(self.blurred, colour, self.compensated)
-            predicted, grad_predicted = self.compensated, self.grad_compensated
-        grad_predicted.fill(0.0)
-        l1, mse = losses.l1_and_clipped_mse(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim,
-                                            mask=self.l1_pixels)
-        dssim = losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim, mask=self.ssim_pixels)
-        grad_colour = None
-        if colour is not None:
-            grad_colour = affine.backward(self.blurred, colour, self.grad_compensated, self.grad_blur)
-        depth_l1, grad_depth = 0.0, None
-        if lambda_depth > 0:
-            target, grad_depth = exposure.depth_buffers(depth)
-            depth_l1 = losses.masked_depth_l1(exposure.mid_view.depth, target, grad_depth, weight=lambda_depth)
-        if frozen is None:
-            self.gaussians.zero_grad()
-        grad_taus, pose_grads = exposure.backward(self.grad_blur, grad_depth)
+        fallback = median_depth(depth) if anchors > 0 and fallback_depth is None else fallback_depth
+        while True:  # again when a render's tile slots overflowed its buffers (they are grown: it fits the next time)
+            exposure, grad_colour, grad_taus, pose_grads = self._forward_backward(
+                depth, base, d_start, d_end, exposure_taus(k), lambda_dssim, lambda_depth, colour, anchors,
+                fallback, frozen, rows)
+            if pose_grads is not None:
+                break
+        values = self.loss_values.read()
         g_start, g_end = exposure_pose_gradients(base, d_start, d_end, grad_taus, pose_grads)
         if rates is not None:
             if observe:
                 self.density.observe(self.store, virtual_pose(base, d_start, d_end, exposure.mid_tau), self.K[0, 0])
             self.store.step(vars(rates))
-        return BlurStep({"l1": l1, "dssim": dssim, "depth": depth_l1}, float(-10 * np.log10(max(mse, 1e-12))),
-                        g_start, g_end, grad_colour)
+        return BlurStep({"l1": values["l1"], "dssim": values["dssim"], "depth": values.get("depth", 0.0)},
+                        float(-10 * np.log10(max(values["mse"], 1e-12))), g_start, g_end, grad_colour)
+
+    def _forward_backward(self, depth, base, d_start, d_end, taus, lambda_dssim, lambda_depth, colour, anchors,
+                          fallback, frozen, rows) -> tuple:
+        """One pass of :meth:`step` up to the Gaussians' and the poses' gradients, its renders deferred, its loss
+        values left in :attr:`loss_values`: (exposure, colour gradient, exposure fractions, pose gradients), the
+        pose gradients None when a render's tile slots overflowed (then the rest is void and the pass must be run
+        again)."""
+        values = self.loss_values
+        values.clear()
+        if anchors > 0:
+            exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen, rows,
+                                       deferred=True)
+        else:
+            exposure = _RenderedExposure(self, base, d_start, d_end, taus, deferred=True)
+        predicted, grad_predicted = self.blurred, self.grad_blur
+        if colour is not None:  # the losses add into grad_compensated; the transform's backward writes grad_blur
+            affine.forward(self.blurred, colour, self.compensated)
+            predicted, grad_predicted = self.compensated, self.grad_compensated
+        grad_predicted.fill(0.0)
+        losses.l1_and_clipped_mse(predicted, self.frame, grad_predicted, weight=1.0 - lambda_dssim,
+                                  mask=self.l1_pixels, into=values.at("l1", "mse"))
+        losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim, mask=self.ssim_pixels,
+                     into=values.at("dssim"))
+        grad_colour = None
+        if colour is not None:
+            grad_colour = affine.backward(self.blurred, colour, self.grad_compensated, self.grad_blur)
+        grad_depth = None
+        if lambda_depth > 0:
+            target, grad_depth = exposure.depth_buffers(depth)
+            losses.masked_depth_l1(exposure.mid_view.depth, target, grad_depth, weight=lambda_depth,
+                                   into=values.at("depth"))
+        if frozen is None:
+            self.gaussians.zero_grad()
+        grad_taus, pose_grads = exposure.backward(self.grad_blur, grad_depth)
+        return exposure, grad_colour, grad_taus, pose_grads
 
     def error_mass(self, frame: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int,
                    colour: np.ndarray | None = None) -> np.ndarray:
@@ -294,7 +314,7 @@ class BlurScene:
         host_copy.write(self.grad_view, np.repeat(np.asarray(pixel_weights)[..., None], 3, axis=2))
         self.gaussians.zero_grad()
         for view in views:
-            self.rasterizer.backward(self.gaussians, view, d_rgb=self.grad_view)
+            self.rasterizer.backward(self.gaussians, view, d_rgb=self.grad_view, pose_row=0)  # the pose unread
         mass = host_copy.read(self.gaussians.grads["colors"], self.count)[:, 0].sum(axis=1) / (3 * SH_C0)
         self.gaussians.zero_grad()
         return mass
@@ -368,10 +388,11 @@ def _as_arrays(splats: Splats) -> dict[str, np.ndarray]:
 class _RenderedExposure:
     """The method's blur: all k virtual views of one exposure rendered, their mean in ``scene.blurred``."""
 
-    def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray):
+    def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray,
+                 deferred: bool = False):
         self.scene, self.taus = scene, taus
         self.views = [scene.rasterizer.forward(scene.gaussians, scene.camera(virtual_pose(base, d_start, d_end, tau)),
-                                               view=j) for j, tau in enumerate(taus)]
+                                               view=j, deferred=deferred) for j, tau in enumerate(taus)]
         blur.average([v.rgb for v in self.views], scene.blurred)
         mid = int(np.argmin(np.abs(taus - 0.5)))
         self.mid_view, self.mid_tau = self.views[mid], float(taus[mid])
@@ -384,12 +405,15 @@ class _RenderedExposure:
 
     def backward(self, grad_blurred, grad_depth) -> tuple[np.ndarray, list[np.ndarray]]:
         """Back-propagate dL/d mean view (and the mid view's depth gradient, or None) into the Gaussians'
-        gradient buffers; returns (exposure fractions, world left-perturbation pose gradients)."""
+        gradient buffers; returns (exposure fractions, world left-perturbation pose gradients), the k pose
+        gradients read in one go (None when a deferred render overflowed: see ``Rasterizer.pose_gradients``)."""
         scene = self.scene
         blur.spread(grad_blurred, len(self.taus), scene.grad_view)
-        return self.taus, [scene.rasterizer.backward(scene.gaussians, v, d_rgb=scene.grad_view,
-                                                     d_depth=grad_depth if v is self.mid_view else None)
-                           for v in self.views]
+        for j, v in enumerate(self.views):
+            scene.rasterizer.backward(scene.gaussians, v, d_rgb=scene.grad_view,
+                                      d_depth=grad_depth if v is self.mid_view else None, pose_row=j)
+        poses = scene.rasterizer.pose_gradients(len(self.views))
+        return self.taus, None if poses is None else list(poses)
 
 
 class _WarpedExposure:
@@ -400,7 +424,7 @@ class _WarpedExposure:
 
     def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray,
                  anchors: int, fallback_depth: float, frozen: FrozenAnchors | None = None,
-                 rows: np.ndarray | None = None):
+                 rows: np.ndarray | None = None, deferred: bool = False):
         self.scene, self.taus, self.frozen = scene, taus, frozen
         self.groups = anchor_groups(len(taus), anchors)
         self.anchor_taus = np.array([float(np.mean(taus[g])) for g in self.groups])
@@ -409,7 +433,7 @@ class _WarpedExposure:
         if frozen is None:
             rast, gs = scene.rasterizer, scene.gaussians
             self.anchor_poses = wanted
-            self.anchor_views = [rast.forward(gs, scene.padded_camera(pose), view=ANCHOR_VIEWS + a)
+            self.anchor_views = [rast.forward(gs, scene.padded_camera(pose), view=ANCHOR_VIEWS + a, deferred=deferred)
                                  for a, pose in enumerate(wanted)]
         else:
             self.anchor_views, self.anchor_poses = frozen.anchors(scene, wanted)
@@ -445,7 +469,13 @@ class _WarpedExposure:
             g_views, g_anchor = relative_pose_gradients(self.anchor_poses[a], g_relative)
             view_grads.extend(g_views)
             if self.frozen is None:
-                anchor_grads.append(g_anchor + scene.rasterizer.backward(
-                    scene.gaussians, view, d_rgb=grad_anchor, d_depth=grad_depth if view is self.mid_view else None))
+                anchor_grads.append(g_anchor)
+                scene.rasterizer.backward(scene.gaussians, view, d_rgb=grad_anchor,
+                                          d_depth=grad_depth if view is self.mid_view else None, pose_row=a)
+        if anchor_grads:  # the anchors' render pose gradients, read in one go
+            rendered = scene.rasterizer.pose_gradients(len(anchor_grads))
+            if rendered is None:  # a deferred anchor render overflowed
+                return self.taus, None
+            anchor_grads = list(np.asarray(anchor_grads) + rendered)
         anchor_taus = [] if self.frozen is not None else list(self.anchor_taus)
         return [*self.taus, *anchor_taus], [*view_grads, *anchor_grads]

@@ -48,6 +48,7 @@ class DepthRefiner:
         self.target_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_alpha = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
+        self.loss_values = losses.LossValues(self.gaussians.dtype)  # a step's loss values, read once per step
 
     @property
     def gaussians(self):
@@ -59,18 +60,18 @@ class DepthRefiner:
         return self.store.count
 
     def _depth_backward(self, target_depth: np.ndarray, cam_to_world: np.ndarray, weight: float,
-                        coverage_weight: float) -> tuple[float, float, np.ndarray]:
-        """Render one camera, add its weighted loss gradients to the Gaussians; (depth, coverage, dL/dpose)."""
+                        coverage_weight: float, row: int) -> None:
+        """Render one camera (deferred), add its weighted loss gradients to the Gaussians, leave dL/dpose in the
+        rasterizer's pose row ``row`` and the depth and coverage terms in :attr:`loss_values`."""
         view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height),
-                                       with_colour=False)
+                                       with_colour=False, deferred=True)
         host_copy.write(self.target_depth, target_depth)
         self.grad_depth.fill(0.0)
         self.grad_alpha.fill(0.0)
-        depth, coverage = losses.normalised_depth_l1_and_coverage(
+        losses.normalised_depth_l1_and_coverage(
             view.depth, view.transmittance, self.target_depth, self.grad_depth, self.grad_alpha, self.min_alpha,
-            weight, coverage_weight)
-        pose_grad = self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha)
-        return depth, coverage, pose_grad
+            weight, coverage_weight, into=self.loss_values.at(f"depth {row}", f"coverage {row}"))
+        self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha, pose_row=row)
 
     @profiling.timed("step host work (uploads, fills)")
     def step(self, target_depths: list[np.ndarray], cam_to_worlds: list[np.ndarray], lambda_depth: float,
@@ -80,19 +81,28 @@ class DepthRefiner:
 
         ``lrs`` maps each trained parameter name to its learning rate (missing names: 0)."""
         n = self.gaussians.n
-        self.gaussians.zero_grad()
         views = len(cam_to_worlds)
-        results = [self._depth_backward(d, T, lambda_depth / views, lambda_coverage / views)
-                   for d, T in zip(target_depths, cam_to_worlds)]
+        if 2 * views + 1 > self.loss_values.values.shape[0]:
+            self.loss_values = losses.LossValues(self.gaussians.dtype, 2 * views + 1)
+        while True:  # again when a render's tile slots overflowed its buffers (they are grown: it fits the next time)
+            self.gaussians.zero_grad()
+            self.loss_values.clear()
+            for row, (d, T) in enumerate(zip(target_depths, cam_to_worlds)):
+                self._depth_backward(d, T, lambda_depth / views, lambda_coverage / views, row)
+            pose_grads = self.rasterizer.pose_gradients(views)
+            if pose_grads is not None:
+                break
         # The method sums both losses; the depth term here is a mean over pixels, so the opacity
         # weight is divided by the pixel count to keep the method's balance between the two sums.
-        opacity = losses.opacity_binarization(
+        losses.opacity_binarization(
             self.gaussians.params["opacity_logits"], self.gaussians.grads["opacity_logits"], n,
-            weight=lambda_opacity / (self.width * self.height),
+            weight=lambda_opacity / (self.width * self.height), into=self.loss_values.at("opacity"),
         )
         self.store.step(lrs)
-        depth, coverage = (float(np.mean([r[k] for r in results])) for k in (0, 1))
-        return {"depth": depth, "coverage": coverage, "opacity": opacity / max(n, 1)}, [r[2] for r in results]
+        values = self.loss_values.read()
+        depth, coverage = (float(np.mean([values[f"{term} {row}"] for row in range(views)]))
+                           for term in ("depth", "coverage"))
+        return {"depth": depth, "coverage": coverage, "opacity": values["opacity"] / max(n, 1)}, list(pose_grads)
 
     def params(self) -> dict[str, np.ndarray]:
         """The trained parameters of the live Gaussians as NumPy."""

@@ -9,7 +9,9 @@ Two ways in:
   :class:`DeviceGaussians` (``params`` / ``grads`` dicts of ndarrays), :class:`Rasterizer`
   (``forward(gaussians, camera, view=i) -> View`` with ``.rgb`` (H, W, 3), ``.depth``,
   ``.transmittance`` (= 1 - alpha) ndarrays; ``backward(gaussians, view, d_rgb=, d_depth=,
-  d_alpha=) -> np.ndarray (6,)`` pose gradient, parameter gradients ADDED to ``gaussians.grads``),
+  d_alpha=) -> np.ndarray (6,)`` pose gradient, parameter gradients ADDED to ``gaussians.grads``; a
+  training step renders ``deferred=True`` and passes ``pose_row=j``, then reads the k pose gradients,
+  and whether any view overflowed its slot buffers, in one ``pose_gradients(k)``),
   ``losses`` (value returned, ``weight * gradient`` added into a given ndarray), ``blur`` (k-view
   average and its gradient), ``affine`` (a frame's affine colour transform and its gradient),
   ``density_stats`` (each Gaussian's positional gradient in pixels, for densification), ``warp`` ([ours]
@@ -35,14 +37,16 @@ Stage 2 (isotropic fixed scale, depth only; ``K`` from ``geometry.raster_intrins
 Stage 3 (k virtual views of one blurred frame)::
 
     taus = np.linspace(0, 1, k)
-    views = [rast.forward(gs, Camera(K, virtual_pose(T, d_s, d_e, tau), w, h), view=j)  # geometry.py
-             for j, tau in enumerate(taus)]
+    views = [rast.forward(gs, Camera(K, virtual_pose(T, d_s, d_e, tau), w, h), view=j,  # geometry.py
+                          deferred=True) for j, tau in enumerate(taus)]
     blur.average([v.rgb for v in views], blurred)
     g_blur.fill(0.0)
     losses.l1(blurred, frame, g_blur, weight=1 - lam); losses.dssim(blurred, frame, g_blur, weight=lam)
     blur.spread(g_blur, k, g_view)                          # dL/d(each view) = dL/dblur / k
     gs.zero_grad()
-    pose_grads = [rast.backward(gs, v, d_rgb=g_view) for v in views]
+    for j, v in enumerate(views):
+        rast.backward(gs, v, d_rgb=g_view, pose_row=j)        # the pose gradient stays on the device
+    pose_grads = rast.pose_gradients(k)                     # one read; None: a view overflowed, run again
     g_s, g_e = exposure_pose_gradients(T, d_s, d_e, taus, pose_grads)   # from geometry.py
     adam.step()
 

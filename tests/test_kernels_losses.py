@@ -7,7 +7,7 @@ import pytest
 import taichi as ti
 from scipy.ndimage import correlate1d
 
-from taichi_gs.kernels import blur, losses, runtime
+from taichi_gs.kernels import blur, launch_budget, losses, runtime
 from taichi_gs.kernels.optim import Adam
 from taichi_gs.kernels.splat import to_device
 
@@ -157,6 +157,18 @@ def test_blur_average_and_spread() -> None:
     np.testing.assert_allclose(share.to_numpy(), g / 4, rtol=1e-12)
     with pytest.raises(ValueError):
         blur.average([device(views[0]), zeros((2, 2, 3))], out)
+
+
+def test_blur_average_takes_one_launch_per_sixteen_views() -> None:
+    rng = np.random.default_rng(5)
+    views = [rng.uniform(size=(6, 5, 3)) for _ in range(blur.VIEWS_PER_LAUNCH + 4)]
+    out = zeros((6, 5, 3))
+    for k in (blur.VIEWS_PER_LAUNCH, len(views)):
+        on_device = [device(v) for v in views[:k]]
+        with launch_budget.counting() as budget:
+            blur.average(on_device, out)
+        assert budget.launches == -(-k // blur.VIEWS_PER_LAUNCH)
+        np.testing.assert_allclose(out.to_numpy(), np.mean(views[:k], axis=0), rtol=1e-12)
 
 
 def test_adam_matches_numpy_reference() -> None:

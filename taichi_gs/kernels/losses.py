@@ -1,7 +1,9 @@
 """Image and regularisation losses with their gradients, on device.
 
-Each function returns the loss value (a Python float) and ADDS ``weight * dL/d(input)`` into the
-given gradient ndarray, so several terms can share one gradient buffer before a backward pass.
+Each function ADDS ``weight * dL/d(input)`` into the given gradient ndarray, so several terms can share one
+gradient buffer before a backward pass, and returns the loss value (a Python float: one host read), or with
+``into`` (a :class:`Slot` of a :class:`LossValues`) leaves it on the device, where a training step's values
+wait for one read per step.
 - :func:`l1`: mean over pixels and channels of ``|pred - target|`` (H, W, C).
   The image losses take an optional :class:`PixelWeights` mask: the mean is then over its pixels
   (e.g. only pixels the camera saw, not the unsourced border of an undistorted frame).
@@ -28,7 +30,7 @@ import numpy as np
 import taichi as ti
 
 from .. import profiling
-from . import row_spans, runtime
+from . import host_copy, row_spans, runtime
 from .splat import to_device
 
 SSIM_C1 = 0.01**2
@@ -78,7 +80,7 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.kernel
     def l1(pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt, parts: fnd(2),
-           rows: fnd(2), mse: fnd(1)) -> dt:
+           rows: fnd(2), values: fnd(1), at: ti.i32):
         h, w, c = pred.shape[0], pred.shape[1], pred.shape[2]
         scale = weight / (total * c)
         for i in range(row_spans.span_count(h, w, span) * spread):
@@ -96,11 +98,12 @@ def _kernels(dt) -> SimpleNamespace:
                 parts[i // spread, 0] = acc
                 parts[i // spread, 1] = squared
         sums = totals(parts, rows, h, w, 2)
-        mse[0] = sums[1] / (total * c)
-        return sums[0] / (total * c)
+        values[at] = sums[0] / (total * c)
+        values[at + 1] = sums[1] / (total * c)
 
     @ti.kernel
-    def masked_depth_l1(pred: fnd(2), target: fnd(2), grad: fnd(2), weight: dt, parts: fnd(2), rows: fnd(2)) -> dt:
+    def masked_depth_l1(pred: fnd(2), target: fnd(2), grad: fnd(2), weight: dt, parts: fnd(2), rows: fnd(2),
+                        values: fnd(1), at: ti.i32):
         h, w = pred.shape[0], pred.shape[1]
         n_spans = row_spans.span_count(h, w, span)
         for i in range(n_spans * spread):
@@ -123,7 +126,7 @@ def _kernels(dt) -> SimpleNamespace:
                     if target[v, u] > 0:
                         diff = pred[v, u] - target[v, u]
                         grad[v, u] = grad[v, u] + weight / count * (ti.cast(diff > 0, dt) - ti.cast(diff < 0, dt))
-        return total / count
+        values[at] = total / count
 
     @ti.func
     def depth_pixel(depth: ti.template(), trans: ti.template(), target: ti.template(), v, u, min_alpha):
@@ -138,7 +141,7 @@ def _kernels(dt) -> SimpleNamespace:
     @ti.kernel
     def normalised_depth_l1_and_coverage(depth: fnd(2), trans: fnd(2), target: fnd(2), grad_depth: fnd(2),
                                          grad_alpha: fnd(2), min_alpha: dt, weight: dt, coverage_weight: dt,
-                                         parts: fnd(2), rows: fnd(2), coverage: fnd(1)) -> dt:
+                                         parts: fnd(2), rows: fnd(2), values: fnd(1), at: ti.i32):
         h, w = depth.shape[0], depth.shape[1]
         n_spans = row_spans.span_count(h, w, span)
         for i in range(n_spans * spread):  # sums: |residual|, its pixels, 1 - alpha, pixels with depth
@@ -163,8 +166,8 @@ def _kernels(dt) -> SimpleNamespace:
                     g_depth = inside * weight / count * sign / alpha
                     grad_depth[v, u] = g_depth0 + g_depth
                     grad_alpha[v, u] = g_alpha0 - g_depth * d / alpha - valid * coverage_weight / n_valid
-        coverage[0] = sums[2] / n_valid
-        return sums[0] / count
+        values[at] = sums[0] / count
+        values[at + 1] = sums[2] / n_valid
 
     # D-SSIM's four passes check the window's taps against the image edge only near it: rows and columns at
     # least SSIM_RADIUS pixels inside run unchecked (branch-free) sums, adding the taps in the same order.
@@ -285,7 +288,8 @@ def _kernels(dt) -> SimpleNamespace:
     def dssim(
         pred: fnd(3), target: fnd(3), grad: fnd(3), weight: dt, mask: fnd(2), total: dt, window: fnd(1),
         moments: fnd(1), partial: fnd(1), blurred_partial: fnd(1), parts: fnd(2), rows: fnd(2), c: ti.template(),
-    ) -> dt:
+        values: fnd(1), at: ti.i32,
+    ):
         h, w = pred.shape[0], pred.shape[1]
         n_spans = row_spans.span_count(h, w, span)
         first, last = interior(h)
@@ -313,10 +317,11 @@ def _kernels(dt) -> SimpleNamespace:
                     gradient_row(blurred_partial, window, pred, target, grad, v, u0, u1, c, False)
                 else:
                     gradient_row(blurred_partial, window, pred, target, grad, v, u0, u1, c, True)
-        return 1.0 - totals(parts, rows, h, w, 1)[0] / (total * c)
+        values[at] = 1.0 - totals(parts, rows, h, w, 1)[0] / (total * c)
 
     @ti.kernel
-    def opacity_binarization(logits: fnd(1), grad: fnd(1), n: ti.i32, weight: dt, rows: fnd(2)) -> dt:
+    def opacity_binarization(logits: fnd(1), grad: fnd(1), n: ti.i32, weight: dt, rows: fnd(2), values: fnd(1),
+                             at: ti.i32):
         n_chunks = (n + 1023) // 1024
         for c in range(n_chunks * spread):  # a few hundred chunks: spread, or the CPU backend runs them on one thread
             if c % spread == 0:
@@ -327,7 +332,7 @@ def _kernels(dt) -> SimpleNamespace:
                     acc += o * o * (1 - o) * (1 - o)
                     grad[i] = grad[i] + weight * 2 * o * (1 - o) * (1 - 2 * o) * o * (1 - o)
                 rows[chunk, 0] = acc
-        return total_of(rows, n_chunks, 1)[0]
+        values[at] = total_of(rows, n_chunks, 1)[0]
 
     return SimpleNamespace(l1=l1, masked_depth_l1=masked_depth_l1, dssim=dssim,
                            opacity_binarization=opacity_binarization,
@@ -393,6 +398,51 @@ def _weights_for(pred: ti.Ndarray, mask: PixelWeights | None) -> PixelWeights:
     return mask
 
 
+@dataclass(frozen=True)
+class Slot:
+    """Where a loss kernel leaves its value(s) on the device: ``values[at]`` (and ``values[at + 1]`` for two)."""
+
+    values: ti.Ndarray
+    at: int
+
+
+class LossValues:
+    """A training step's loss values on the device, in named slots (:meth:`at`), read in one go
+    (:meth:`read`): one host read per step, not one per loss."""
+
+    def __init__(self, dtype, size: int = 16) -> None:
+        self.values = ti.ndarray(dtype, (size,))
+        self.names: list[str] = []
+
+    def at(self, *names: str) -> Slot:
+        """The next ``len(names)`` slots, for the values of one loss call, in its order."""
+        if len(self.names) + len(names) > self.values.shape[0]:
+            raise ValueError(f"more than {self.values.shape[0]} loss values in one step")
+        slot = Slot(self.values, len(self.names))
+        self.names += names
+        return slot
+
+    def clear(self) -> None:
+        """Forget the named slots (a step that runs again)."""
+        self.names = []
+
+    def read(self) -> dict[str, float]:
+        """Every named value, in one read; the slots are then free for the next step."""
+        values = host_copy.read(self.values, len(self.names)) if self.names else []
+        named = {name: float(value) for name, value in zip(self.names, values)}
+        self.clear()
+        return named
+
+
+def _run(kernel, dt, count: int, into: Slot | None, *args) -> tuple[float, ...] | None:
+    """Launch a loss kernel that leaves ``count`` values at ``into``; without ``into``, read them (one read)."""
+    slot = into or Slot(_buffer("values", dt, (2,)), 0)
+    kernel(*args, slot.values, slot.at)
+    if into is not None:
+        return None
+    return tuple(float(v) for v in host_copy.read(slot.values, count))
+
+
 def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
        mask: PixelWeights | None = None) -> float:
     """Mean absolute error of (H, W, C) images (over ``mask``'s pixels, weighted; None: all);
@@ -402,61 +452,60 @@ def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1
 
 @profiling.timed("losses (device)")
 def l1_and_clipped_mse(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
-                       mask: PixelWeights | None = None) -> tuple[float, float]:
+                       mask: PixelWeights | None = None, into: Slot | None = None) -> tuple[float, float] | None:
     """:func:`l1`, and from the same pass the mean of ``(clip(pred, 0, 1) - target)^2`` over the same
-    pixels (for PSNR; no gradient)."""
+    pixels (for PSNR; no gradient). ``into``: leave both on the device there (two slots), return None."""
     dt = _checked(pred, target, grad)
     mask = _weights_for(pred, mask)
-    mse = _buffer("mse", dt, (1,))
-    value = _kernels(dt).l1(pred, target, grad, weight, mask.weights, mask.total, *_partials(pred, 2), mse)
-    return float(value), float(mse[0])
+    return _run(_kernels(dt).l1, dt, 2, into, pred, target, grad, weight, mask.weights, mask.total,
+                *_partials(pred, 2))
 
 
 @profiling.timed("losses (device)")
-def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0) -> float:
+def masked_depth_l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
+                    into: Slot | None = None) -> float | None:
     """Mean ``|pred - target|`` over pixels with target > 0 of (H, W) depth maps; adds to ``grad``."""
     dt = _checked(pred, target, grad)
-    return float(_kernels(dt).masked_depth_l1(pred, target, grad, weight, *_partials(pred, 2)))
+    value = _run(_kernels(dt).masked_depth_l1, dt, 1, into, pred, target, grad, weight, *_partials(pred, 2))
+    return None if value is None else value[0]
 
 
 @profiling.timed("losses (device)")
 def normalised_depth_l1_and_coverage(depth: ti.Ndarray, transmittance: ti.Ndarray, target: ti.Ndarray,
                                      grad_depth: ti.Ndarray, grad_alpha: ti.Ndarray, min_alpha: float,
-                                     weight: float = 1.0, coverage_weight: float = 1.0) -> tuple[float, float]:
+                                     weight: float = 1.0, coverage_weight: float = 1.0,
+                                     into: Slot | None = None) -> tuple[float, float] | None:
     """Stage 2's depth terms of one render (H, W): the mean ``|depth / alpha - target|`` over pixels with
     target > 0 and alpha = 1 - transmittance >= ``min_alpha``, and the coverage loss, the mean ``1 - alpha``
     over pixels with target > 0. Adds the gradients of ``weight * depth term + coverage_weight * coverage``
     w.r.t. the blended depth to ``grad_depth`` and w.r.t. alpha to ``grad_alpha``; returns both terms."""
     dt = _checked(depth, target, grad_depth)
     _checked(transmittance, target, grad_alpha)
-    coverage = _buffer("coverage", dt, (1,))
-    value = _kernels(dt).normalised_depth_l1_and_coverage(depth, transmittance, target, grad_depth, grad_alpha,
-                                                          min_alpha, weight, coverage_weight,
-                                                          *_partials(depth, 4), coverage)
-    return float(value), float(coverage[0])
+    return _run(_kernels(dt).normalised_depth_l1_and_coverage, dt, 2, into, depth, transmittance, target,
+                grad_depth, grad_alpha, min_alpha, weight, coverage_weight, *_partials(depth, 4))
 
 
 @profiling.timed("losses (device)")
 def dssim(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,
-          mask: PixelWeights | None = None) -> float:
+          mask: PixelWeights | None = None, into: Slot | None = None) -> float | None:
     """``1 - SSIM`` of (H, W, C) images (3DGS window and constants), the SSIM map averaged over
     ``mask``'s pixels (weighted; None: all); adds ``weight * dL/dpred``."""
     dt = _checked(pred, target, grad)
     h, w, c = pred.shape
     mask = _weights_for(pred, mask)
-    return float(
-        _kernels(dt).dssim(
-            pred, target, grad, weight, mask.weights, mask.total, _window_on_device(dt),
-            _buffer("moments", dt, (h * w * c * 5,)),
-            _buffer("partial", dt, (h * w * c * 3,)), _buffer("blurred_partial", dt, (h * w * c * 3,)),
-            *_partials(pred, 1), c,
-        )
+    value = _run(
+        _kernels(dt).dssim, dt, 1, into, pred, target, grad, weight, mask.weights, mask.total, _window_on_device(dt),
+        _buffer("moments", dt, (h * w * c * 5,)), _buffer("partial", dt, (h * w * c * 3,)),
+        _buffer("blurred_partial", dt, (h * w * c * 3,)), *_partials(pred, 1), c,
     )
+    return None if value is None else value[0]
 
 
 @profiling.timed("losses (device)")
-def opacity_binarization(logits: ti.Ndarray, grad: ti.Ndarray, n: int, weight: float = 1.0) -> float:
+def opacity_binarization(logits: ti.Ndarray, grad: ti.Ndarray, n: int, weight: float = 1.0,
+                         into: Slot | None = None) -> float | None:
     """``sum o^2 (1 - o)^2`` over the first n logits; adds ``weight * dL/dlogit`` to ``grad``."""
     dt = logits.dtype
     rows = _buffer("chunks", dt, (max(1, -(-n // 1024)), 1))
-    return float(_kernels(dt).opacity_binarization(logits, grad, n, weight, rows))
+    value = _run(_kernels(dt).opacity_binarization, dt, 1, into, logits, grad, n, weight, rows)
+    return None if value is None else value[0]

@@ -7,9 +7,11 @@ forward
   1. project every Gaussian (one thread each); key = its depth's f32 bit pattern (monotone for
      depth > 0), value = its index; LSD radix sort of the N pairs (4 passes of 8 bits);
   2. per depth-sorted Gaussian, its tile count, then (same launch) an exclusive multi-level
-     scan -> slot offsets (no atomics); each Gaussian writes its slots' tile ids in depth order; a
-     stable radix sort by tile id (1-2 passes) leaves every tile's slots front to back, ties broken
-     by Gaussian index (the CPU order); tile ranges come from neighbouring keys; records are
+     scan -> slot offsets (no atomics) and each Gaussian's slots' tile ids in depth order, in buffers
+     of the Rasterizer's slot capacity C (the count S stays on the device; the C - S unused slots are
+     keyed to the last tile, after its own; S > C: no slots, the view renders nothing); a stable
+     radix sort by tile id (1-2 passes) of the C slots leaves every tile's slots front to back, ties
+     broken by Gaussian index (the CPU order); tile ranges come from neighbouring keys; records are
      gathered tile-ordered; each scan and each whole radix sort is one kernel launch;
   3. blend: one 256-thread block per 16x16 tile, one thread per pixel, the tile's records loaded
      in batches of 256 into shared memory between ``block.sync()``s, per-pixel state in
@@ -22,17 +24,17 @@ backward
      slot's row (Taichi 1.7's SPIR-V backend has no float atomics on shared memory, so there is
      no shared-memory pre-reduction yet: see docs/notebook/benchmarks-2026-11.md, "GPU kernels (block per tile)");
   5. per Gaussian (one thread each, depth order): sum of its slots' rows, projection backward,
-     its pose term; the pose terms are summed by a multi-level block reduction.
+     its pose term; the pose terms are summed by a multi-level block reduction (a launch per level)
+     into the view's pose row, with S and whether S > C.
 """
 
 import functools
 import math
 from types import SimpleNamespace
 
-import numpy as np
 import taichi as ti
 
-from . import host_copy, project, rasterize, runtime, scan, tiles
+from . import project, rasterize, runtime, scan, tiles
 from .project import (
     ALPHA_MIN, P_COLOR, P_CONIC_A, P_CONIC_B, P_CONIC_C, P_CUTOFF, P_DEPTH, P_MEAN_X, P_MEAN_Y, P_OPACITY, P_WIDTH,
 )
@@ -90,32 +92,28 @@ def make(dt) -> SimpleNamespace:
             ids[g] = g
 
     @ti.kernel
-    def slot_offsets(
+    def bin_slots(
         n: ti.i32,
+        cap: ti.i32,  # C: slots the buffers hold (the view overflows, and renders nothing, when S > C)
+        n_tiles: ti.i32,
+        tiles_x: ti.i32,
         order: ind(1),  # (N,) Gaussian ids in depth order
         rect: ind(2),  # (N, 4)
         counts: ind(1),  # output (N,): tiles touched by order[i]
-        offsets: ind(1),  # output (N + 1,): exclusive scan of counts, offsets[N] = the slot count
+        offsets: ind(1),  # output (N + 1,): exclusive scan of counts, offsets[N] = the slot count S
         work: ind(1),  # (>= scan.scan_work_size(N),) scan levels
+        tile_keys: ind(1),  # output (C,) tile id of each slot; past the S slots the last tile's (sorted after its own)
+        slot_ids: ind(1),  # output (C,) 0 .. C-1
+        slot_gid: ind(1),  # output (C,) Gaussian id of each slot
+        levels: ti.template(),  # scan.scan_levels_for(N)
     ):
+        """Slot offsets (each Gaussian's tile count, scanned), then each Gaussian's slots in depth order."""
         for i in range(n):
             counts[i] = tiles.tile_count(rect, order[i])
-        scan_f.scan_levels(counts, 0, offsets, 0, work, 0, n)
-
-    @ti.kernel
-    def emit_slots(
-        n: ti.i32,
-        tiles_x: ti.i32,
-        order: ind(1),  # (N,) depth order
-        rect: ind(2),  # (N, 4)
-        offsets: ind(1),  # (N + 1,) from slot_offsets
-        tile_keys: ind(1),  # output (S,) tile id of each slot
-        slot_ids: ind(1),  # output (S,) 0 .. S-1
-        slot_gid: ind(1),  # output (S,) Gaussian id of each slot
-    ):
+        scan_f.scan_levels(counts, 0, offsets, 0, work, 0, n, levels)
         for i in range(n):
             g = order[i]
-            if rect[g, 0] <= rect[g, 2]:
+            if offsets[n] <= cap and rect[g, 0] <= rect[g, 2]:
                 b = tiles.tile_box(rect, g)
                 s = offsets[i]
                 for ty in range(b[1], b[3] + 1):
@@ -124,28 +122,37 @@ def make(dt) -> SimpleNamespace:
                         slot_ids[s] = s
                         slot_gid[s] = g
                         s += 1
+        for s in range(cap):
+            if s >= ti.select(offsets[n] <= cap, offsets[n], 0):
+                tile_keys[s] = n_tiles - 1
+                slot_ids[s] = s
+                slot_gid[s] = 0
 
     @ti.kernel
     def ranges_and_gather(
-        n_slots: ti.i32,
+        n_slots: ti.i32,  # C
         n_tiles: ti.i32,
-        sorted_tiles: ind(1),  # (S,) tile ids, sorted
-        order: ind(1),  # (S,) slot ids in the same order
+        sorted_tiles: ind(1),  # (C,) tile ids, sorted
+        order: ind(1),  # (C,) slot ids in the same order (those from S on are no slot: after their tile's slots)
         slot_gid: ind(1),  # (S,)
         proj: fnd(2),  # (N, P_WIDTH)
         rect: ind(2),  # (N, 4)
         tile_range: ind(2),  # output (T, 2): [start, end) of each tile's records, [0, 0) if none
         entries: fnd(2),  # output (S, E_WIDTH): records in tile order
+        offsets: ind(1),  # (N + 1,) from slot_offsets: S = offsets[N] (0 when it overflowed C)
+        n: ti.i32,  # N
     ):
         for t, end in ti.ndrange(n_tiles, 2):
             tile_range[t, end] = 0
         for j in range(n_slots):
-            t = sorted_tiles[j]
-            if j == 0 or sorted_tiles[j - 1] != t:
-                tile_range[t, 0] = j
-            if j == n_slots - 1 or sorted_tiles[j + 1] != t:
-                tile_range[t, 1] = j + 1
-            blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
+            live = ti.select(offsets[n] <= n_slots, offsets[n], 0)
+            if order[j] < live:
+                t = sorted_tiles[j]
+                if j == 0 or sorted_tiles[j - 1] != t:
+                    tile_range[t, 0] = j
+                if j == n_slots - 1 or sorted_tiles[j + 1] != t or order[j + 1] >= live:
+                    tile_range[t, 1] = j + 1
+                blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
 
     @ti.func
     def pixel_of(t, tid, tiles_x):
@@ -347,6 +354,7 @@ def make(dt) -> SimpleNamespace:
         sh: fnd(3),  # (N, >= n_sh, 3)
         order: ind(1),  # (N,) depth order: Gaussian order[i] owns slots offsets[i] .. offsets[i + 1]
         offsets: ind(1),  # (N + 1,)
+        cap: ti.i32,  # C, as the forward ran (an overflowed view has no slots: no gradients)
         slot_grad: fnd(2),  # (S, N_SLOT_GRADS)
         d_means: fnd(2),  # output (N, 3), added to
         d_quats: fnd(2),  # output (N, 4), added to
@@ -358,10 +366,13 @@ def make(dt) -> SimpleNamespace:
         view_dependent: ti.template(),
     ):
         for i in range(n):
-            pose = proj_f.slots_vjp(
-                order[i], offsets[i], offsets[i + 1], slot_grad, means, quats, log_scales, logits, sh, n_sh, cam,
-                intr, width, height, isotropic, view_dependent, d_means, d_quats, d_log_scales, d_logits, d_sh,
-            )
+            pose = ti.Vector.zero(dt, 6)
+            if offsets[n] <= cap:
+                pose = proj_f.slots_vjp(
+                    order[i], offsets[i], offsets[i + 1], slot_grad, means, quats, log_scales, logits, sh, n_sh,
+                    cam, intr, width, height, isotropic, view_dependent, d_means, d_quats, d_log_scales, d_logits,
+                    d_sh,
+                )
             for c in ti.static(range(6)):
                 pose_part[i, c] = pose[c]
 
@@ -369,11 +380,17 @@ def make(dt) -> SimpleNamespace:
     def sum_rows(
         src: fnd(2),  # (n, 6)
         n: ti.i32,
-        dst: fnd(2),  # output (ceil(n / POSE_BLOCK), 6)
+        dst: fnd(2),  # output rows dst_row .. dst_row + max(1, ceil(n / POSE_BLOCK)), 6 columns
+        dst_row: ti.i32,
+        offsets: ind(1),  # (N + 1,) slot offsets (last level: S = offsets[N] goes to column 6)
+        n_gaussians: ti.i32,  # N
+        cap: ti.i32,  # C (last level: column 7 = 1 when S > C)
+        last: ti.template(),  # the last level: dst is a pose row (splat.POSE_COLUMNS)
     ):
-        """dst[b] = sum of src rows [b * POSE_BLOCK, (b + 1) * POSE_BLOCK) (6 columns), tree in shared memory."""
+        """dst[dst_row + b] = sum of src rows [b * POSE_BLOCK, (b + 1) * POSE_BLOCK) (6 columns), tree in shared
+        memory (one row of zeros for n = 0)."""
         ti.loop_config(block_dim=POSE_BLOCK)
-        for i in range(((n + POSE_BLOCK - 1) // POSE_BLOCK) * POSE_BLOCK):
+        for i in range(ti.max(1, (n + POSE_BLOCK - 1) // POSE_BLOCK) * POSE_BLOCK):
             tid = i % POSE_BLOCK
             sync()  # a block may run several iterations (grid-stride): let the last one finish
             buf = ti.simt.block.SharedArray((POSE_BLOCK, 6), dt)
@@ -390,12 +407,15 @@ def make(dt) -> SimpleNamespace:
                 sync()
             if tid == 0:
                 for c in ti.static(range(6)):
-                    dst[i // POSE_BLOCK, c] = buf[0, c]
+                    dst[dst_row + i // POSE_BLOCK, c] = buf[0, c]
+                if ti.static(last):
+                    dst[dst_row, 6] = ti.cast(offsets[n_gaussians], dt)
+                    dst[dst_row, 7] = ti.cast(offsets[n_gaussians] > cap, dt)
 
     return SimpleNamespace(
-        project_keys=project_keys, slot_offsets=slot_offsets, emit_slots=emit_slots,
-        ranges_and_gather=ranges_and_gather, blend_forward=blend_forward, blend_backward=blend_backward,
-        gaussian_backward=gaussian_backward, sum_rows=sum_rows,
+        project_keys=project_keys, bin_slots=bin_slots, ranges_and_gather=ranges_and_gather,
+        blend_forward=blend_forward, blend_backward=blend_backward, gaussian_backward=gaussian_backward,
+        sum_rows=sum_rows,
     )
 
 
@@ -410,8 +430,9 @@ class GpuPipeline:
         # Vulkan: pre-sum gradients over each subgroup (Taichi exposes subgroup ops there only)
         self.subgroup = runtime.current().arch == "vulkan"
 
-    def forward(self, view, gaussians, cam, intr, width: int, height: int, bg, clock) -> None:
-        """Fill ``view``'s images and what its backward replays."""
+    def forward(self, view, gaussians, cam, intr, width: int, height: int, bg, clock, cap: int) -> None:
+        """Fill ``view``'s images and what its backward replays, in buffers of ``cap`` slots; the slot count
+        stays on the device."""
         s = view.scratch
         n = gaussians.n
         p = gaussians.params
@@ -423,55 +444,52 @@ class GpuPipeline:
             cam, intr, width, height, view.proj, view.rect, keys, ids, gaussians.isotropic, gaussians.view_dependent,
         )
         _, view.depth_order = scan.radix_sort(keys, ids, n, DEPTH_KEY_BITS, s, "depth_sort")
-        view.depth_offsets = s.get("offsets", n + 1)
-        self.k.slot_offsets(n, view.depth_order, view.rect, s.get("counts", n), view.depth_offsets,
-                            s.get("scan_work", scan.scan_work_size(n)))
-        n_slots = int(view.depth_offsets[n])
         clock("project")
+        view.depth_offsets = s.get("offsets", n + 1)
         tiles_x, tiles_y = tiles.tile_grid(width, height)
         n_tiles = tiles_x * tiles_y
-        tile_keys, slot_ids, view.slot_gid = s.get("tile_keys", n_slots), s.get("slot_ids", n_slots), \
-            s.get("slot_gid", n_slots)
-        self.k.emit_slots(n, tiles_x, view.depth_order, view.rect, view.depth_offsets, tile_keys, slot_ids, view.slot_gid)
+        tile_keys, slot_ids, view.slot_gid = s.get("tile_keys", cap), s.get("slot_ids", cap), s.get("slot_gid", cap)
+        self.k.bin_slots(n, cap, n_tiles, tiles_x, view.depth_order, view.rect, s.get("counts", n), view.depth_offsets,
+                         s.get("scan_work", scan.scan_work_size(n)), tile_keys, slot_ids, view.slot_gid,
+                         scan.scan_levels_for(n))
         tile_bits = max(1, int(n_tiles - 1).bit_length())
-        sorted_tiles, view.order = scan.radix_sort(tile_keys, slot_ids, n_slots, tile_bits, s, "tile_sort")
+        sorted_tiles, view.order = scan.radix_sort(tile_keys, slot_ids, cap, tile_bits, s, "tile_sort")
         view.tile_range = s.get("tile_range", n_tiles, ti.i32, (2,))
-        view.entries = s.get("entries", n_slots, self.dtype, (E_WIDTH,))
-        self.k.ranges_and_gather(n_slots, n_tiles, sorted_tiles, view.order, view.slot_gid, view.proj, view.rect,
-                                 view.tile_range, view.entries)
+        view.entries = s.get("entries", cap, self.dtype, (E_WIDTH,))
+        self.k.ranges_and_gather(cap, n_tiles, sorted_tiles, view.order, view.slot_gid, view.proj, view.rect,
+                                 view.tile_range, view.entries, view.depth_offsets, n)
         clock("sort")
         self.k.blend_forward(tiles_x, n_tiles, width, height, view.tile_range, view.entries, bg,
                              view.rgb, view.depth, view.transmittance, view.last)
         clock("blend")
-        view.n_slots = n_slots
 
-    def backward(self, view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha) -> np.ndarray:
-        """Add parameter gradients into ``gaussians.grads``; return the pose gradient."""
+    def backward(self, view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, pose_row: int) -> None:
+        """Add parameter gradients into ``gaussians.grads``; the pose gradient, the slot count and whether it
+        overflowed go to row ``pose_row`` of ``pose_out`` (splat.POSE_COLUMNS)."""
         width, height = view.size
         n = gaussians.n
         s = self.scratch
-        slot_grad = s.get("slot_grad", view.n_slots, self.dtype, (N_SLOT_GRADS,))
+        slot_grad = s.get("slot_grad", view.cap, self.dtype, (N_SLOT_GRADS,))
         tiles_x, tiles_y = tiles.tile_grid(width, height)
         n_tiles = tiles_x * tiles_y
         self.k.blend_backward(tiles_x, n_tiles, width, height, view.tile_range, view.order, view.entries, bg,
-                              view.transmittance, view.last, d_rgb, d_depth, d_alpha, view.n_slots, slot_grad,
+                              view.transmittance, view.last, d_rgb, d_depth, d_alpha, view.cap, slot_grad,
                               self.subgroup)
         p, g = gaussians.params, gaussians.grads
         rows = s.get("pose_rows0", n, self.dtype, (6,))
         self.k.gaussian_backward(
             n, gaussians.n_sh, width, height, cam, intr,
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
-            view.depth_order, view.depth_offsets, slot_grad,
+            view.depth_order, view.depth_offsets, view.cap, slot_grad,
             g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["colors"], rows, gaussians.isotropic,
             gaussians.view_dependent,
         )
-        if n == 0:
-            return np.zeros(6)
-        level = 0
-        while True:
-            n_out = max(1, -(-n // POSE_BLOCK))
-            out = s.get(f"pose_rows{level + 1}", n_out, self.dtype, (6,))
-            self.k.sum_rows(rows, n, out)
-            if n_out == 1:
-                return host_copy.read(out, 1)[0].astype(np.float64)
-            rows, n, level = out, n_out, level + 1
+        level, count = 0, n
+        while True:  # one launch per level of 256-row block sums (2 up to 65,536 Gaussians)
+            n_out = max(1, -(-count // POSE_BLOCK))
+            last = n_out == 1
+            out = pose_out if last else s.get(f"pose_rows{level + 1}", n_out, self.dtype, (6,))
+            self.k.sum_rows(rows, count, out, pose_row if last else 0, view.depth_offsets, n, view.cap, last)
+            if last:
+                return
+            rows, count, level = out, n_out, level + 1

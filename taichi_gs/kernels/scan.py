@@ -3,9 +3,10 @@ pairs, each one kernel launch. Block-structured (256 threads, shared memory, ``b
 compile on CUDA, Vulkan and Metal only, never on Taichi's CPU backend.
 
 - scan: each block scans 256 elements in shared memory (Hillis-Steele, 8 steps) and writes its
-  total; the totals are scanned the same way, four levels deep (256**4 covers any i32 count), and
+  total; the totals are scanned the same way, as many levels deep as the size needs (:func:`scan_levels_for`:
+  1 level up to 255 elements, 2 up to 65,279, at most 4 for any i32 count; a compile-time count), and
   added back level by level. Every level is a top-level loop of one kernel, so the levels cost the
-  runtime's task launches, not Python's kernel calls (~50 us and ~10 us per ndarray each).
+  runtime's task launches (GPU dispatches), not Python's kernel calls (~50 us and ~10 us per ndarray each).
 - radix sort, 8-bit digits, one pass per digit: per-block digit histograms (shared-memory atomics)
   written digit-major, one exclusive scan of that table gives every (digit, block) its output base,
   then each block scatters its elements in index order, ranking equal digits among the 256
@@ -25,7 +26,6 @@ from . import runtime
 
 BLOCK = 256
 LOG_BLOCK = 8
-SCAN_LEVELS = 4  # BLOCK ** SCAN_LEVELS = 2 ** 32 elements
 ITEMS = 4  # elements per thread in the radix passes
 CHUNK = BLOCK * ITEMS
 DIGIT_BITS = 8
@@ -54,18 +54,33 @@ class Scratch:
         return buf
 
 
+def scan_levels_for(n: int) -> int:
+    """Levels of block scans an n-element scan needs: each level scans the block totals of the one below
+    until a single block (n + 1 outputs) holds them."""
+    levels = 1
+    while n >= BLOCK:
+        n = n // BLOCK + 1
+        levels += 1
+    return levels
+
+
 def scan_work_size(n: int) -> int:
     """Elements of scan work space :func:`scan_levels` needs for an n-element scan."""
     size = 0
-    for _ in range(SCAN_LEVELS):
+    for _ in range(scan_levels_for(n)):
         n = n // BLOCK + 1  # the level's block totals, then their n + 1 scanned values
         size += 2 * n + 1
     return size
 
 
+def digit_table_size(n: int) -> int:
+    """Entries of the radix sort's digit table for n pairs (one per digit per block of CHUNK pairs)."""
+    return RADIX * max(1, -(-n // CHUNK))
+
+
 def radix_work_size(n: int) -> int:
     """Elements of work space the radix sort of n pairs needs: digit table, its scan, scan levels."""
-    table = RADIX * max(1, -(-n // CHUNK))
+    table = digit_table_size(n)
     return 2 * table + 1 + scan_work_size(table)
 
 
@@ -107,25 +122,28 @@ def funcs() -> SimpleNamespace:
             dst[dst_at + i] = dst[dst_at + i] + offsets[offsets_at + i // BLOCK]
 
     @ti.func
-    def scan_levels(src: ti.template(), src_at, dst: ti.template(), dst_at, work: ti.template(), work_at, n):
+    def scan_levels(src: ti.template(), src_at, dst: ti.template(), dst_at, work: ti.template(), work_at, n,
+                    levels: ti.template()):
         """dst[dst_at + i] = sum of src[src_at .. src_at + i) for i <= n, through ``work`` (at least
-        scan_work_size(n) elements from work_at). Level l keeps its block totals, then their scan."""
-        sizes = ti.Vector([0] * SCAN_LEVELS)  # elements scanned at each level
-        totals = ti.Vector([0] * SCAN_LEVELS)  # where each level's block totals start in work
-        scanned = ti.Vector([0] * SCAN_LEVELS)  # where their scan starts (level l scans totals[l - 1])
+        scan_work_size(n) elements from work_at), in ``levels`` = scan_levels_for(n) levels (or more). Level l
+        keeps its block totals, then their scan."""
+        sizes = ti.Vector([0] * levels)  # elements scanned at each level
+        totals = ti.Vector([0] * levels)  # where each level's block totals start in work
+        scanned = ti.Vector([0] * levels)  # where their scan starts (level l scans totals[l - 1])
         at, m = work_at, n
-        for level in ti.static(range(SCAN_LEVELS)):
+        for level in ti.static(range(levels)):
             sizes[level] = m
             m = m // BLOCK + 1
             totals[level] = at
             scanned[level] = at + m
             at += 2 * m + 1
         block_scan(src, src_at, dst, dst_at, work, totals[0], n)
-        for level in ti.static(range(1, SCAN_LEVELS)):
+        for level in ti.static(range(1, levels)):
             block_scan(work, totals[level - 1], work, scanned[level - 1], work, totals[level], sizes[level])
-        for level in ti.static(range(SCAN_LEVELS - 2, 0, -1)):
+        for level in ti.static(range(levels - 2, 0, -1)):
             add_block_offsets(work, scanned[level - 1], work, scanned[level], sizes[level])
-        add_block_offsets(dst, dst_at, work, scanned[0], n)
+        if ti.static(levels > 1):  # one level: its single block is the whole scan
+            add_block_offsets(dst, dst_at, work, scanned[0], n)
 
     @ti.func
     def digit_histogram(keys: ti.template(), n, shift, n_blocks, table: ti.template(), table_at):
@@ -183,11 +201,11 @@ def funcs() -> SimpleNamespace:
 
     @ti.func
     def radix_pass(keys: ti.template(), vals: ti.template(), out_keys: ti.template(), out_vals: ti.template(), n,
-                   shift, work: ti.template()):
+                   shift, work: ti.template(), levels: ti.template()):
         n_blocks = ti.max(1, (n + CHUNK - 1) // CHUNK)
         table = RADIX * n_blocks
         digit_histogram(keys, n, shift, n_blocks, work, 0)
-        scan_levels(work, 0, work, table, work, 2 * table + 1, table)
+        scan_levels(work, 0, work, table, work, 2 * table + 1, table, levels)
         scatter(keys, vals, n, shift, n_blocks, work, table, out_keys, out_vals)
 
     return SimpleNamespace(scan_levels=scan_levels, radix_pass=radix_pass)
@@ -198,8 +216,8 @@ def _kernels() -> SimpleNamespace:
     f = funcs()
 
     @ti.kernel
-    def exclusive_scan_kernel(src: _ind, dst: _ind, work: _ind, n: ti.i32):
-        f.scan_levels(src, 0, dst, 0, work, 0, n)
+    def exclusive_scan_kernel(src: _ind, dst: _ind, work: _ind, n: ti.i32, levels: ti.template()):
+        f.scan_levels(src, 0, dst, 0, work, 0, n, levels)
 
     @ti.kernel
     def radix_sort_kernel(
@@ -208,19 +226,20 @@ def _kernels() -> SimpleNamespace:
         work: _ind,  # (>= radix_work_size(n),)
         n: ti.i32,
         passes: ti.template(),
+        levels: ti.template(),  # scan levels of the digit table (scan_levels_for)
     ):
         for p in ti.static(range(passes)):
             if ti.static(p % 2 == 0):
-                f.radix_pass(keys, vals, other_keys, other_vals, n, p * DIGIT_BITS, work)
+                f.radix_pass(keys, vals, other_keys, other_vals, n, p * DIGIT_BITS, work, levels)
             else:
-                f.radix_pass(other_keys, other_vals, keys, vals, n, p * DIGIT_BITS, work)
+                f.radix_pass(other_keys, other_vals, keys, vals, n, p * DIGIT_BITS, work, levels)
 
     return SimpleNamespace(exclusive_scan=exclusive_scan_kernel, radix_sort=radix_sort_kernel)
 
 
 def exclusive_scan(src: ti.Ndarray, dst: ti.Ndarray, n: int, scratch: Scratch) -> None:
     """dst[0..n] = exclusive prefix sums of src[0..n), dst[n] = the total (dst holds n + 1)."""
-    _kernels().exclusive_scan(src, dst, scratch.get("scan_work", scan_work_size(n)), n)
+    _kernels().exclusive_scan(src, dst, scratch.get("scan_work", scan_work_size(n)), n, scan_levels_for(n))
 
 
 def radix_sort(keys: ti.Ndarray, vals: ti.Ndarray, n: int, bits: int, scratch: Scratch,
@@ -229,5 +248,6 @@ def radix_sort(keys: ti.Ndarray, vals: ti.Ndarray, n: int, bits: int, scratch: S
     keys. Returns the arrays that hold the result: (keys, vals) or the scratch pair."""
     passes = -(-bits // DIGIT_BITS)
     other = (scratch.get(f"{name}_keys", n), scratch.get(f"{name}_vals", n))
-    _kernels().radix_sort(keys, vals, *other, scratch.get(f"{name}_work", radix_work_size(n)), n, passes)
+    _kernels().radix_sort(keys, vals, *other, scratch.get(f"{name}_work", radix_work_size(n)), n, passes,
+                          scan_levels_for(digit_table_size(n)))
     return (keys, vals) if passes % 2 == 0 else other

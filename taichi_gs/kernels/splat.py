@@ -6,9 +6,14 @@ so k views can be alive at once for blur averaging) and back-propagates image gr
 Gaussians' gradient buffers (accumulating, so k views sum) and a 6-vector pose gradient.
 
 Per forward: three kernel launches (project + per-Gaussian slot offsets; binning + per-tile depth
-sort + gather of tile-ordered records; blending) and one scalar read of the intersection count to
-size buffers (grown geometrically, never shrunk; ndarray arguments never trigger recompiles).
-Per backward: one launch (tile replay, per-Gaussian reduction + projection backward, pose sum).
+sort + gather of tile-ordered records; blending). The slot buffers hold the Rasterizer's slot capacity
+(sized from an earlier count with headroom, grown geometrically, never shrunk; ndarray arguments never
+trigger recompiles); the slot count stays on the device. A view whose slots do not fit renders nothing:
+a checked forward (the default) reads its count and renders again; a ``deferred`` one reads nothing.
+Per backward: one launch (tile replay, per-Gaussian reduction + projection backward, pose sum); the pose
+gradient is read back (a checked backward), or left in a row of :attr:`Rasterizer.pose_rows` with the
+view's slot count and overflow flag, so that a step's k views come back in one read
+(:meth:`Rasterizer.pose_gradients`), which also says whether any of them overflowed.
 That is the CPU path (one thread per tile); on GPU backends the Rasterizer hands both passes to
 :class:`~taichi_gs.kernels.raster_gpu.GpuPipeline` (block per tile, thread per pixel).
 ``forward(..., with_colour=False)`` blends depth and alpha only (stage 2): the CPU path skips the
@@ -31,6 +36,7 @@ from .rasterize import B_WIDTH, E_WIDTH, F_WIDTH, N_SLOT_GRADS
 from .tiles import TILE
 
 POSE_CHUNK = 1024
+POSE_COLUMNS = 8  # a pose row: the 6-vector pose gradient, the view's slot count S, 1 when S > C (overflowed)
 SCAN_CHUNK = 128
 COUNT_RUNS = 16  # runs of slots that the sort's counting pass splits into (fixed: the same result on any machine)
 
@@ -111,10 +117,15 @@ def _kernels(dt) -> SimpleNamespace:
                 offsets[g] = running
                 running += tiles.tile_count(rect, g)
 
+    @ti.func
+    def live_slots(offsets: ti.template(), n, cap):
+        """The slot count S when it fits the ``cap`` slots of the buffers, else 0 (the view renders nothing)."""
+        return ti.select(offsets[n] <= cap, offsets[n], 0)
+
     @ti.kernel
     def bin_and_sort(
         n: ti.i32,  # N
-        n_slots: ti.i32,  # S
+        cap: ti.i32,  # C: slots the buffers below hold (the view overflows when S > C)
         tiles_x: ti.i32,  # tiles per image row
         n_tiles: ti.i32,  # T
         proj: fnd(2),  # (N, P_WIDTH) from project_and_count
@@ -130,7 +141,8 @@ def _kernels(dt) -> SimpleNamespace:
         entries: fnd(2),  # out (S, E_WIDTH): the sorted slots' screen records and tile boxes
     ):
         for g in range(n):
-            tiles.emit_slots(g, rect, offsets, slot_gid, slot_tile, tiles_x)
+            if offsets[n] <= cap:
+                tiles.emit_slots(g, rect, offsets, slot_gid, slot_tile, tiles_x)
         # stable counting sort of the slots by tile: each of COUNT_RUNS runs of slots counts its tiles in its own
         # row of tile_cursor (no atomics: two threads' atomic counters on a few hundred tiles cost more than the
         # whole pass; docs/notebook/benchmarks-2026-11.md, "The render's sort without atomics"), one thread turns the
@@ -141,7 +153,7 @@ def _kernels(dt) -> SimpleNamespace:
                 c = i // spread
                 for t in range(n_tiles):
                     tile_cursor[c, t] = 0
-                first, end = tiles.run_bounds(c, COUNT_RUNS, n_slots)
+                first, end = tiles.run_bounds(c, COUNT_RUNS, live_slots(offsets, n, cap))
                 for s in range(first, end):
                     t = slot_tile[s]
                     tile_cursor[c, t] = tile_cursor[c, t] + 1
@@ -158,7 +170,7 @@ def _kernels(dt) -> SimpleNamespace:
         for i in range(COUNT_RUNS * spread):
             if i % spread == 0:
                 c = i // spread
-                first, end = tiles.run_bounds(c, COUNT_RUNS, n_slots)
+                first, end = tiles.run_bounds(c, COUNT_RUNS, live_slots(offsets, n, cap))
                 for s in range(first, end):
                     t = slot_tile[s]
                     pos = tile_cursor[c, t]
@@ -168,10 +180,12 @@ def _kernels(dt) -> SimpleNamespace:
             if i % spread == 0:
                 t = i // spread
                 tiles.sort_segment(keys, tmp_keys, tile_start[t], tile_start[t + 1])
-        for j in range(n_slots):
-            order[j] = tiles.key_slot(keys[j])
-        for j in range(n_slots):
-            blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
+        for j in range(cap):
+            if j < live_slots(offsets, n, cap):
+                order[j] = tiles.key_slot(keys[j])
+        for j in range(cap):
+            if j < live_slots(offsets, n, cap):
+                blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
 
     @ti.kernel
     def blend(
@@ -213,6 +227,7 @@ def _kernels(dt) -> SimpleNamespace:
         logits: fnd(1),  # (N,)
         sh: fnd(3),  # (N, M, 3)
         offsets: ind(1),  # (N + 1,) from project_and_count
+        cap: ti.i32,  # C, as the forward ran (an overflowed view has no slots: no gradients)
         tile_start: ind(1),  # (T + 1,) from bin_and_sort
         order: ind(1),  # (S,)
         entries: fnd(2),  # (S, E_WIDTH)
@@ -230,7 +245,8 @@ def _kernels(dt) -> SimpleNamespace:
         d_sh: fnd(3),  # out, added to (N, M, 3)
         pose_part: fnd(2),  # scratch (N, 6)
         pose_chunks: fnd(2),  # scratch (N / POSE_CHUNK + 1, 6)
-        pose_grad: fnd(1),  # out (6,): dL/d left perturbation of the camera, [translation, rotation]
+        pose_rows: fnd(2),  # out row pose_row (POSE_COLUMNS): dL/d left perturbation of the camera,
+        pose_row: ti.i32,  # [translation, rotation], then the slot count S and 1 when it overflowed (S > C)
         isotropic: ti.template(),
         view_dependent: ti.template(),  # M > 1
         with_colour: ti.template(),  # as the forward was rendered
@@ -242,10 +258,12 @@ def _kernels(dt) -> SimpleNamespace:
                     out_trans, out_last, d_rgb, d_depth, d_alpha, state, slot_grad, with_colour,
                 )
         for g in range(n):
-            pose = proj_f.slots_vjp(
-                g, offsets[g], offsets[g + 1], slot_grad, means, quats, log_scales, logits, sh, n_sh, cam, intr,
-                width, height, isotropic, view_dependent, d_means, d_quats, d_log_scales, d_logits, d_sh,
-            )
+            pose = ti.Vector.zero(dt, 6)
+            if offsets[n] <= cap:
+                pose = proj_f.slots_vjp(
+                    g, offsets[g], offsets[g + 1], slot_grad, means, quats, log_scales, logits, sh, n_sh, cam, intr,
+                    width, height, isotropic, view_dependent, d_means, d_quats, d_log_scales, d_logits, d_sh,
+                )
             for c in ti.static(range(6)):
                 pose_part[g, c] = pose[c]
         for chunk in range((n + POSE_CHUNK - 1) // POSE_CHUNK):
@@ -260,11 +278,45 @@ def _kernels(dt) -> SimpleNamespace:
             total = ti.cast(0.0, dt)
             for chunk in range((n + POSE_CHUNK - 1) // POSE_CHUNK):
                 total += pose_chunks[chunk, c]
-            pose_grad[c] = total
+            pose_rows[pose_row, c] = total
+            if c == 0:
+                pose_rows[pose_row, 6] = ti.cast(offsets[n], dt)
+                pose_rows[pose_row, 7] = ti.cast(offsets[n] > cap, dt)
 
     return SimpleNamespace(
         project_and_count=project_and_count, bin_and_sort=bin_and_sort, blend=blend, backward=backward,
     )
+
+
+@functools.cache
+def _zero_kernel(dt):
+    """One launch that zeroes five arrays of any rank (the Gaussians' gradient buffers), row by row."""
+
+    @ti.func
+    def zero_row(a: ti.template(), r):
+        if r < a.shape[0]:  # the rank's loops inside (compiled per rank): no integer division per element
+            if ti.static(len(a.shape) == 1):
+                a[r] = 0.0
+            elif ti.static(len(a.shape) == 2):
+                for c in range(a.shape[1]):
+                    a[r, c] = 0.0
+            else:
+                for i in range(a.shape[1]):
+                    for j in range(a.shape[2]):
+                        a[r, i, j] = 0.0
+
+    arr = ti.types.ndarray(dtype=dt)
+
+    @ti.kernel
+    def zero_rows(a0: arr, a1: arr, a2: arr, a3: arr, a4: arr, rows: ti.i32):
+        for r in range(rows):
+            zero_row(a0, r)
+            zero_row(a1, r)
+            zero_row(a2, r)
+            zero_row(a3, r)
+            zero_row(a4, r)
+
+    return zero_rows
 
 
 def _grown(arr, need: int, dtype, tail: tuple = ()):
@@ -349,9 +401,9 @@ class DeviceGaussians:
         return {k: host_copy.read(v, self.n) for k, v in source.items()}
 
     def zero_grad(self) -> None:
-        """Reset every gradient buffer to 0."""
-        for g in self.grads.values():
-            g.fill(0.0)
+        """Reset every gradient buffer to 0 (one launch)."""
+        grads = list(self.grads.values())
+        _zero_kernel(self.dtype)(*grads, max(g.shape[0] for g in grads))
 
 
 @dataclass
@@ -383,7 +435,9 @@ class View:
         self.camera: Camera | None = None
         self.background = np.zeros(3)
         self.with_colour = True  # False: a depth-and-alpha render (rgb black, no colour gradients)
-        self.n = self.n_slots = 0
+        self.n = 0
+        self.n_slots: int | None = 0  # the slot count S (None after a deferred forward: see slot_count)
+        self.cap = 0  # slots the buffers held when it was rendered
         self.size = (0, 0)
 
     def ensure_images(self, width: int, height: int) -> None:
@@ -397,6 +451,11 @@ class View:
             self.tile_cursor = ti.ndarray(ti.i32, (COUNT_RUNS, tiles_x * tiles_y))
             self.tile_start = ti.ndarray(ti.i32, (tiles_x * tiles_y + 1,))
             self.size = (width, height)
+
+    def slot_count(self) -> int:
+        """The slot count S of the last render (one Gaussian per tile it touches), read from the device."""
+        offsets = self.offsets if self.depth_offsets is None else self.depth_offsets
+        return int(offsets[self.n])
 
     def tiles_per_gaussian(self) -> np.ndarray:
         """How many 16x16 tiles each of the n Gaussians touched (0 when culled), from its pixel box."""
@@ -450,6 +509,11 @@ class Rasterizer:
     ``gaussians.grads`` and returns dL/d(pose) as a NumPy 6-vector [translation, rotation] for the
     left perturbation ``cam_to_world' = exp(delta) @ cam_to_world``. Image gradients are ndarrays
     of the rasterizer's dtype or None (zero).
+
+    A training step reads nothing per view: ``forward(..., deferred=True)`` and ``backward(...,
+    pose_row=j)`` (the pose gradient left in row j of :attr:`pose_rows`), then once per step
+    :meth:`pose_gradients` (the rows in one read; None when a view's slots did not fit its buffers: they
+    are grown, run the step again).
     """
 
     def __init__(self, dtype=ti.f32) -> None:
@@ -463,70 +527,109 @@ class Rasterizer:
         self.views: dict[int, View] = {}
         self._zeros: dict[tuple, ti.Ndarray] = {}
         self._scratch: dict[object, ti.Ndarray] = {}
+        self.slot_capacity = 0  # slots each view's buffers hold (0: not yet counted)
+        self._sized_for = 0  # the Gaussian count the capacity was set for (it grows with them)
+        self.pose_rows = ti.ndarray(dtype, (16, POSE_COLUMNS))  # rows of backward(..., pose_row=j)
+        self._own_pose = ti.ndarray(dtype, (1, POSE_COLUMNS))  # that of a checked backward
 
     @profiling.timed("render forward", phases="timings")
     def forward(
         self, gaussians: DeviceGaussians, camera: Camera, view: int = 0, background=(0.0, 0.0, 0.0),
-        timings: dict | None = None, with_colour: bool = True,
+        timings: dict | None = None, with_colour: bool = True, deferred: bool = False,
     ) -> View:
         """Render ``camera`` into view buffer ``view`` and return it.
 
         ``timings``: when a dict is given, each phase is synchronised and its seconds added under
         "project", "sort" and "blend" (for benchmarks; costs a few syncs). ``with_colour=False``
         renders depth and alpha only (stage 2): the CPU path skips the colour sums and leaves ``rgb``
-        black, and the view's backward takes no colour gradient (GPU backends render colour anyway)."""
-        clock = _PhaseClock(timings)
+        black, and the view's backward takes no colour gradient (GPU backends render colour anyway).
+        ``deferred``: no host read (the slot count stays on the device); the view holds the render once
+        :meth:`pose_gradients` has read its backward's row (before that it may be empty)."""
         if gaussians.dtype != self.dtype:
             raise ValueError("gaussians and rasterizer use different float types")
         v = self.views.setdefault(view, View(self.dtype))
         width, height = int(camera.width), int(camera.height)
-        n = gaussians.n
         v.ensure_images(width, height)
+        v.camera, v.background, v.n = camera, np.asarray(background, dtype=np.float64), gaussians.n
+        v.with_colour = with_colour
+        while True:
+            self._render(v, gaussians, camera, background, _PhaseClock(timings), with_colour)
+            if deferred and self.slot_capacity > 0:
+                v.n_slots = None
+                return v
+            v.n_slots = v.slot_count()  # a checked forward: the count, read
+            if v.n_slots <= v.cap:
+                return v
+            self._grow(v.n_slots, gaussians.n)
+
+    def pose_gradients(self, rows: int) -> np.ndarray | None:
+        """The pose gradients of ``backward(..., pose_row=j)`` for j < ``rows``, (rows, 6) float64, in one read;
+        None when one of those views had more tile slots than its buffers held (it rendered nothing): the
+        capacity is then grown, and the step must be run again."""
+        values = host_copy.read(self.pose_rows, rows).astype(np.float64)
+        if values[:, 7].any():
+            self._grow(int(values[:, 6].max()) + 1, max(v.n for v in self.views.values()))
+            return None
+        return values[:, :6]
+
+    def _grow(self, slots: int, n: int) -> None:
+        """Make room for ``slots`` slots (a view's count) with headroom, for ``n`` Gaussians."""
+        self.slot_capacity = max(self.slot_capacity, int(slots * 1.25) + 256)
+        self._sized_for = max(self._sized_for, n)
+
+    def _capacity(self, n: int) -> int:
+        """Slots per view for ``n`` Gaussians: the capacity, scaled up while the Gaussians outgrow what it was
+        set for."""
+        if self.slot_capacity and n > self._sized_for:
+            self.slot_capacity = -(-self.slot_capacity * n // self._sized_for)
+            self._sized_for = n
+        return self.slot_capacity
+
+    def _render(self, v: View, gaussians: DeviceGaussians, camera: Camera, background, clock, with_colour: bool):
+        """One forward into ``v`` at the current capacity (``v.cap``)."""
+        width, height = v.size
+        n = gaussians.n
+        v.cap = self._capacity(n)
+        cam, intr = camera_args(camera, self.dtype)
+        bg = ti.Vector([float(b) for b in background], dt=self.dtype)
         if self.gpu is not None:
-            cam, intr = camera_args(camera, self.dtype)
-            bg = ti.Vector([float(b) for b in background], dt=self.dtype)
-            self.gpu.forward(v, gaussians, cam, intr, width, height, bg, clock)
-            v.camera, v.background, v.n = camera, np.asarray(background, dtype=np.float64), n
-            v.with_colour = with_colour
-            return v
+            self.gpu.forward(v, gaussians, cam, intr, width, height, bg, clock, v.cap)
+            return
         v.proj = _grown(v.proj, n, self.dtype, (P_WIDTH,))
         v.rect = _grown(v.rect, n, ti.i32, (4,))
         v.offsets = _grown(v.offsets, n + 1, ti.i32)
         v.chunk_base = _grown(v.chunk_base, n // SCAN_CHUNK + 2, ti.i32)
-        cam, intr = camera_args(camera, self.dtype)
         p = gaussians.params
         self.k.project_and_count(
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"], n, gaussians.n_sh,
             cam, intr, width, height, v.proj, v.rect, v.offsets, v.chunk_base, gaussians.isotropic,
             gaussians.view_dependent,
         )
-        n_slots = int(v.offsets[n])
         clock("project")
+        slots = max(v.cap, 1)
         for name, dtype in (("slot_gid", ti.i32), ("slot_tile", ti.i32), ("keys", ti.i64), ("tmp_keys", ti.i64),
                             ("order", ti.i32)):
-            setattr(v, name, _grown(getattr(v, name), n_slots, dtype))
-        v.entries = _grown(v.entries, n_slots, self.dtype, (E_WIDTH,))
+            setattr(v, name, _grown(getattr(v, name), slots, dtype))
+        v.entries = _grown(v.entries, slots, self.dtype, (E_WIDTH,))
         tiles_x, tiles_y = tiles.tile_grid(width, height)
         n_tiles = tiles_x * tiles_y
         self.k.bin_and_sort(
-            n, n_slots, tiles_x, n_tiles, v.proj, v.rect, v.offsets,
+            n, v.cap, tiles_x, n_tiles, v.proj, v.rect, v.offsets,
             v.slot_gid, v.slot_tile, v.tile_cursor, v.tile_start, v.keys, v.tmp_keys, v.order,
             v.entries,
         )
         clock("sort")
-        bg = ti.Vector([float(b) for b in background], dt=self.dtype)
         self.k.blend(
             tiles_x, n_tiles, width, height, v.tile_start, v.entries, bg, self._state(F_WIDTH, width, height),
             v.rgb, v.depth, v.transmittance, v.last, bool(with_colour),
         )
         clock("blend")
-        v.camera, v.background, v.n, v.n_slots = camera, np.asarray(background, dtype=np.float64), n, n_slots
-        v.with_colour = with_colour
-        return v
 
     @profiling.timed("render backward")
-    def backward(self, gaussians: DeviceGaussians, view: View, d_rgb=None, d_depth=None, d_alpha=None) -> np.ndarray:
-        """Accumulate dL/dparams into ``gaussians.grads``; return dL/d(pose) (6,)."""
+    def backward(self, gaussians: DeviceGaussians, view: View, d_rgb=None, d_depth=None, d_alpha=None,
+                 pose_row: int | None = None) -> np.ndarray | None:
+        """Accumulate dL/dparams into ``gaussians.grads``; return dL/d(pose) (6,), or with ``pose_row`` leave it
+        in that row of :attr:`pose_rows` (no read) and return None."""
         width, height = view.size
         n = gaussians.n
         if n != view.n:
@@ -536,32 +639,47 @@ class Rasterizer:
         d_rgb = self._zero_if_none(d_rgb, (height, width, 3))
         d_depth = self._zero_if_none(d_depth, (height, width))
         d_alpha = self._zero_if_none(d_alpha, (height, width))
-        if self.gpu is not None:
-            cam, intr = camera_args(view.camera, self.dtype)
-            bg = ti.Vector([float(b) for b in view.background], dt=self.dtype)
-            return self.gpu.backward(view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha)
-        s = self._scratch
-        s["slot_grad"] = _grown(s.get("slot_grad"), view.n_slots, self.dtype, (N_SLOT_GRADS,))
-        s["pose_part"] = _grown(s.get("pose_part"), n, self.dtype, (6,))
-        s["pose_chunks"] = _grown(s.get("pose_chunks"), math.ceil(n / POSE_CHUNK) + 1, self.dtype, (6,))
-        if "pose_grad" not in s:
-            s["pose_grad"] = ti.ndarray(self.dtype, (6,))
-        tiles_x, tiles_y = tiles.tile_grid(width, height)
-        n_tiles = tiles_x * tiles_y
+        pose_out, row = (self._own_pose, 0) if pose_row is None else (self._pose_row(pose_row), pose_row)
         cam, intr = camera_args(view.camera, self.dtype)
         bg = ti.Vector([float(b) for b in view.background], dt=self.dtype)
+        if self.gpu is not None:
+            self.gpu.backward(view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, row)
+        else:
+            self._backward_cpu(gaussians, view, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, row)
+        if pose_row is not None:
+            return None
+        return host_copy.read(self._own_pose)[0, :6].astype(np.float64)
+
+    def _backward_cpu(self, gaussians, view, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, row) -> None:
+        width, height = view.size
+        n = gaussians.n
+        s = self._scratch
+        s["slot_grad"] = _grown(s.get("slot_grad"), max(view.cap, 1), self.dtype, (N_SLOT_GRADS,))
+        s["pose_part"] = _grown(s.get("pose_part"), n, self.dtype, (6,))
+        s["pose_chunks"] = _grown(s.get("pose_chunks"), math.ceil(n / POSE_CHUNK) + 1, self.dtype, (6,))
+        tiles_x, tiles_y = tiles.tile_grid(width, height)
+        n_tiles = tiles_x * tiles_y
         p, g = gaussians.params, gaussians.grads
         self.k.backward(
             n, gaussians.n_sh, tiles_x, n_tiles, width, height, cam, intr, bg,
             p["means"], p["quats"], p["log_scales"], p["opacity_logits"], p["colors"],
-            view.offsets, view.tile_start, view.order, view.entries,
+            view.offsets, view.cap, view.tile_start, view.order, view.entries,
             view.transmittance, view.last, d_rgb, d_depth, d_alpha,
             self._state(B_WIDTH, width, height), s["slot_grad"],
             g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["colors"],
-            s["pose_part"], s["pose_chunks"], s["pose_grad"], gaussians.isotropic, gaussians.view_dependent,
+            s["pose_part"], s["pose_chunks"], pose_out, row, gaussians.isotropic, gaussians.view_dependent,
             bool(view.with_colour),
         )
-        return host_copy.read(s["pose_grad"]).astype(np.float64)
+
+    def _pose_row(self, row: int) -> ti.Ndarray:
+        """:attr:`pose_rows`, grown (its rows kept) to hold row ``row``."""
+        if row >= self.pose_rows.shape[0]:
+            grown = ti.ndarray(self.dtype, (2 * row + 2, POSE_COLUMNS))
+            values = np.zeros(grown.shape)
+            values[: self.pose_rows.shape[0]] = host_copy.read(self.pose_rows)
+            host_copy.write(grown, values)
+            self.pose_rows = grown
+        return self.pose_rows
 
     def _state(self, columns: int, width: int, height: int) -> ti.Ndarray:
         """Per-pixel scratch of the blending passes, shared by all views: flat, ``columns`` values per pixel, each
