@@ -210,6 +210,16 @@ def real_blur(runs: list[Run], work: Path) -> str:
     return text[start:end if end >= 0 else None].strip()
 
 
+def launch_budget(runs: list[Run], work: Path) -> str:
+    """bench/launch_budget.py's totals table (launches, tasks, host reads and writes, syncs, bytes per case)."""
+    text = runs[-1].stdout
+    start = text.find("| case")
+    if start < 0:
+        raise SystemExit("bench/launch_budget.py printed no table")
+    end = text.find("\n\n", start)
+    return text[start:end if end >= 0 else None].strip()
+
+
 # --- the tables -------------------------------------------------------------------------------------------------------
 
 POSE = ("{python}", "bench/pose.py")
@@ -269,6 +279,9 @@ TABLES = {t.name: t for t in [
           + (("{python}", "bench/real_blur.py", *(f"{{work}}/{s[0]}" for s in REAL_BLUR_SEQUENCES),
               "--out", "{work}/runs", "--no-paper"),),
           real_blur, needs=("TAICHI_GS_TUM",)),
+    Table("launch_budget", "kernel launches, host reads and bytes copied per render and per training step, counted "
+          "on the CPU backend (20000 Gaussians at 320x240)", "about 2 minutes",
+          (("{python}", "bench/launch_budget.py", "--arch", "cpu"),), launch_budget),
     Table("raster_cpu", "the rasterizer on the CPU backend, 5k-200k Gaussians at 160x120-640x480 (f32, SH degree 0)",
           "about 5 minutes", (("{python}", "bench/raster.py", "--arch", "cpu"),), raster),
     Table("raster_cuda", "the rasterizer on CUDA (640x480, f32, SH degree 0)", "about a minute with a GPU",
