@@ -114,10 +114,10 @@ def work_model(s: dict) -> list[dict]:
     tpg = s["tiles_per_gaussian"]
     row("project_keys", n, "1 Gaussian (SH deg 0)", 0, n * (14 + P_WIDTH + 4 + 2) * F)
     radix_cost(n, 31, "depth sort")
-    row("slot_offsets: count tiles", n, "1 Gaussian", 0, n * (1 + 4 + 1) * F)
+    row("bin_slots: count tiles", n, "1 Gaussian", 0, n * (1 + 4 + 1) * F)
     _, t, b = scan_cost(n)
-    row("slot_offsets: exclusive scan", t, "1 element, 8 steps", 9, b)
-    row("emit_slots", n, f"tiles/Gaussian: mean {tpg.mean():.2f}, max {tpg.max()}", 0,
+    row("bin_slots: exclusive scan", t, "1 element, 8 steps", 9, b)
+    row("bin_slots: emit", n, f"tiles/Gaussian: mean {tpg.mean():.2f}, max {tpg.max()}", 0,
         n * 6 * F + slots * 3 * F)
     radix_cost(slots, max(1, int(n_tiles - 1).bit_length()), "tile sort")
     row("ranges_and_gather", slots, "1 slot", 0, slots * (4 + 3 + P_WIDTH + 4 + 15) * F)

@@ -139,7 +139,7 @@ def make(dt) -> SimpleNamespace:
         rect: ind(2),  # (N, 4)
         tile_range: ind(2),  # output (T, 2): [start, end) of each tile's records, [0, 0) if none
         entries: fnd(2),  # output (S, E_WIDTH): records in tile order
-        offsets: ind(1),  # (N + 1,) from slot_offsets: S = offsets[N] (0 when it overflowed C)
+        offsets: ind(1),  # (N + 1,) from bin_slots: S = offsets[N] (0 when it overflowed C)
         n: ti.i32,  # N
     ):
         for t, end in ti.ndrange(n_tiles, 2):
