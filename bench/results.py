@@ -200,24 +200,23 @@ def sample(runs: list[Run], work: Path) -> str:
           f"{test['blurred_input_psnr_db']:.2f} / {test['blurred_input_ssim']:.3f}", ate, metrics.get("arch", "-")]])
 
 
-def real_blur(runs: list[Run], work: Path) -> str:
-    """bench/real_blur.py's own table: the last (complete) one it printed, after one per sequence as it went."""
-    text = runs[-1].stdout
-    start = text.rfind("| sequence")
+def printed_table(text: str, header: str, script: str, last: bool = False) -> str:
+    """The Markdown table that ``script`` printed whose header row starts with ``header`` (the first, or the last)."""
+    start = text.rfind(header) if last else text.find(header)
     if start < 0:
-        raise SystemExit("bench/real_blur.py printed no table")
+        raise SystemExit(f"{script} printed no table")
     end = text.find("\n\n", start)
     return text[start:end if end >= 0 else None].strip()
+
+
+def real_blur(runs: list[Run], work: Path) -> str:
+    """bench/real_blur.py's own table: the last (complete) one it printed, after one per sequence as it went."""
+    return printed_table(runs[-1].stdout, "| sequence", "bench/real_blur.py", last=True)
 
 
 def launch_budget(runs: list[Run], work: Path) -> str:
     """bench/launch_budget.py's totals table (launches, tasks, host reads and writes, syncs, bytes per case)."""
-    text = runs[-1].stdout
-    start = text.find("| case")
-    if start < 0:
-        raise SystemExit("bench/launch_budget.py printed no table")
-    end = text.find("\n\n", start)
-    return text[start:end if end >= 0 else None].strip()
+    return printed_table(runs[-1].stdout, "| case", "bench/launch_budget.py")
 
 
 # --- the tables -------------------------------------------------------------------------------------------------------
