@@ -36,7 +36,7 @@ from taichi_gs import synth
 from taichi_gs.evaluate import inverse_depth_rmse, psnr, ssim
 from taichi_gs.io.load import load_sequence
 from taichi_gs.stages.deblur import PRESETS, run_deblur
-from taichi_gs.stages.deblur_frames import split_frames
+from taichi_gs.stages.deblur.frames import split_frames
 from taichi_gs.standins import write_refine_outputs
 
 METHODS = {"k = 1 fit (no blur model)": {"k": 1}, "ours no-depth": {"lambda_depth": 0.0}, "ours": {},

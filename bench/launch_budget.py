@@ -40,7 +40,7 @@ from raster import parse_combo, scene
 
 PAPER_K, FAST_K = 15, 9
 LAMBDA_DSSIM, LAMBDA_DEPTH = 0.2, 0.1
-FAST_WARP_MARGIN = 14  # the fast preset's warp_px 12 + 2 (stages/deblur.warp_margin)
+FAST_WARP_MARGIN = 14  # the fast preset's warp_px 12 + 2 (stages/deblur/run.warp_margin)
 TASK_ARCHS = ("cpu", "cuda")  # where Taichi's kernel profiler counts tasks
 TOTALS = ("launches", "tasks", "host_reads", "host_writes", "syncs", "bytes_to_device", "bytes_to_host")
 
@@ -51,10 +51,10 @@ CASES = ("render", "stage 3 paper", "stage 3 fast", "stage 2")
 def case(name: str, n: int, width: int, height: int) -> Callable[[], object]:
     """One call of case ``name`` (see the module) on ``n`` random Gaussians at ``width`` x ``height``; the
     blurred frame a fixed random image, its depth a plane (the counts do not depend on either)."""
-    from taichi_gs.deblur_model import BlurScene, Rates
     from taichi_gs.refine_model import DepthRefiner
     from taichi_gs.render import Camera, DeviceGaussians, Rasterizer, to_device
     from taichi_gs.splats import Splats
+    from taichi_gs.stages.deblur.model import BlurScene, Rates
 
     (means, quats, log_scales, logits, colors), K = scene(n, width, height)
     rng = np.random.default_rng(1)

@@ -1,7 +1,7 @@
 """[ours] Rolling shutters: a camera that reads its image rows one after another, top to bottom, over a
 readout time, so that each row sees the scene from where the camera was when that row was read. Kinect v1's
 colour camera is one (docs/notebook/benchmarks-2026-11.md, "A rolling shutter in TUM's Kinect frames"). Stage 3
-models it by warping each virtual view's rows from global-shutter renders at the row's own pose (``deblur_model``,
+models it by warping each virtual view's rows from global-shutter renders at the row's own pose (``stages.deblur.model``,
 ``kernels.warp``); stages 1 and 2 de-skew the frames instead: each frame's colour and depth moved to the pose of its
 middle row (:class:`DeskewedSequence`). The camera's motion over the readout comes from the trajectory (the
 neighbouring frames' poses)."""

@@ -15,8 +15,8 @@ from taichi_gs.geometry import backproject, invert, project, se3_exp, se3_log, t
 from taichi_gs.io.ply import read_splats
 from taichi_gs.io.trajectory import read_tum, read_tum_rows, tum_rows_to_poses
 from taichi_gs.stages.deblur import PRESETS, load_stage2, run_deblur
-from taichi_gs.stages.deblur_frames import split_frames
-from taichi_gs.stages.exposures import exposure_px, initial_offsets, keep_open
+from taichi_gs.stages.deblur.exposures import exposure_px, initial_offsets, keep_open
+from taichi_gs.stages.deblur.frames import split_frames
 
 synth = pytest.importorskip("taichi_gs.synth")
 
@@ -115,7 +115,7 @@ def test_extreme_blur_held_out_views_get_sharper_and_exposures_approach_truth(tm
 
 
 def test_training_colour_downsampling_is_the_block_mean():
-    from taichi_gs.stages.deblur_frames import _downsample_color
+    from taichi_gs.stages.deblur.frames import _downsample_color
 
     color = np.random.default_rng(0).uniform(size=(7, 9, 3)).astype(np.float32)
     small = _downsample_color(color, 2)
@@ -134,7 +134,7 @@ def test_a_frame_without_depth_takes_the_other_frames_median_depth():
 
 @pytest.mark.parametrize("preset, exposure_px, warns", [("fast", 9.0, False), ("fast", 18.0, True), ("paper", 9.0, False)])
 def test_the_k_warning_follows_the_presets_step_target(preset, exposure_px, warns):
-    from taichi_gs.stages.deblur import PRESETS, _Frames, _step_warnings
+    from taichi_gs.stages.deblur.run import PRESETS, _Frames, _step_warnings
 
     focal, depth = 200.0, 2.0
     offsets = np.zeros((2, 2, 6))
@@ -150,8 +150,8 @@ def test_init_max_px_leaves_no_gaussian_wider_than_the_footprint(tmp_path):
     """With the scales frozen, every Gaussian stage 3 writes is at most ``init_max_px`` wide (sigma,
     seen from the nearest training camera; the split halves sample positions, so a little slack),
     and there are more of them than stage 2 gave."""
+    from taichi_gs.stages.deblur.density_control import footprint_limit
     from taichi_gs.standins import synthetic_refine_outputs
-    from taichi_gs.density import footprint_limit
 
     clip = synth.SynthConfig(width=64, height=48, frames=4, trajectory="handheld", blur="extreme", seed=3)
     sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.08)
@@ -209,8 +209,8 @@ def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupt
     """Stage 3's whole state (Gaussians and their Adam moments, densification statistics, exposures,
     colour transforms and their moments, the RNG) survives a checkpoint: training continues from the
     checkpoint's iteration, not from 0, and reaches the uninterrupted run's result."""
-    from taichi_gs.standins import write_refine_outputs
     from taichi_gs.io.load import load_sequence
+    from taichi_gs.standins import write_refine_outputs
 
     synth.generate(synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=5),
                    tmp_path / "seq")
@@ -242,7 +242,7 @@ def test_an_interrupted_run_resumes_at_its_checkpoint_and_ends_as_an_uninterrupt
 def test_densification_statistics_are_gathered_only_while_a_densification_can_read_them(tmp_path, monkeypatch):
     """Training steps 1 .. densify_until add to the statistics, later ones do not (nothing reads them
     after the window); the held-out fits, which freeze the scene, never do."""
-    from taichi_gs.density import DensityControl, DensitySchedule
+    from taichi_gs.stages.deblur.density_control import DensityControl, DensitySchedule
     from taichi_gs.standins import synthetic_refine_outputs
 
     schedule = DensitySchedule(10, 30, 10, 1.0, 0.01, 0.005, 0.1, 100)
@@ -262,8 +262,8 @@ def test_significance_pruning_drops_the_lightest_share_once_after_the_last_densi
     """With ``prune_weight_share``, the densification at 15 (the last of 5, 10, 15) is followed by one
     drop of the Gaussians of least blending weight over the training views, up to that share of it;
     nothing grows afterwards, so the run ends with what the drop kept."""
-    from taichi_gs.deblur_model import BlurScene
-    from taichi_gs.density import DensityControl, heavier_than_share
+    from taichi_gs.stages.deblur.density_control import DensityControl, heavier_than_share
+    from taichi_gs.stages.deblur.model import BlurScene
     from taichi_gs.standins import synthetic_refine_outputs
 
     clip = synth.SynthConfig(width=48, height=36, frames=4, trajectory="handheld", blur="extreme", seed=2)
@@ -292,7 +292,7 @@ def test_significance_pruning_drops_the_lightest_share_once_after_the_last_densi
 
 def test_the_k_warning_at_its_edge_names_the_worst_frame_to_the_hundredth_of_a_pixel() -> None:
     """k = 7 at 2 px steps covers a 12 px exposure: 12.24 px warns (2.04 px steps, k = 8 fits), 12 px does not."""
-    from taichi_gs.stages.deblur import DeblurConfig, _Frames, _step_warnings
+    from taichi_gs.stages.deblur.run import DeblurConfig, _Frames, _step_warnings
 
     frames = _Frames([], [], np.full(3, 2.0), np.diag([100.0, 100.0, 1.0]))
     offsets = np.zeros((3, 2, 6))

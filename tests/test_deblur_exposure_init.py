@@ -12,8 +12,8 @@ from taichi_gs.cli import app
 from taichi_gs.geometry import backproject, invert, project, transform, virtual_pose
 from taichi_gs.io.load import load_sequence
 from taichi_gs.io.sequence import Sequence
-from taichi_gs.stages.deblur_config import PRESETS
-from taichi_gs.stages.exposures import initial_offsets
+from taichi_gs.stages.deblur.config import PRESETS
+from taichi_gs.stages.deblur.exposures import initial_offsets
 from taichi_gs.synth import SynthConfig, generate
 
 OLD_FRACTION = 0.5  # offsets at +-1/4 of the motion to the neighbours

@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from taichi_gs.deblur_model import BlurScene, Rates
 from taichi_gs.kernels import host_copy, launch_budget
 from taichi_gs.render import Camera, DeviceGaussians, Rasterizer, to_device
 from taichi_gs.splats import Splats
+from taichi_gs.stages.deblur.model import BlurScene, Rates
 
 WIDTH, HEIGHT, N = 48, 40, 300
 

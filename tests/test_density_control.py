@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from taichi_gs.deblur_model import TRAINED, BlurScene
-from taichi_gs.density import DensitySchedule, heavier_than_share, reset_opacity
 from taichi_gs.geometry import quat_to_rotmat
 from taichi_gs.splats import Splats, logit
+from taichi_gs.stages.deblur.density_control import DensitySchedule, heavier_than_share, reset_opacity
+from taichi_gs.stages.deblur.model import TRAINED, BlurScene
 
 K = np.array([[30.0, 0.0, 16.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
 SPLIT_SCALE, MIN_OPACITY, MAX_SCALE, THRESHOLD = 0.01, 0.005, 0.2, 1.0
@@ -186,7 +186,7 @@ def test_the_store_carries_moments_through_keep_append_and_reset():
 
 
 def test_footprint_limit_is_pixels_times_distance_to_the_nearest_camera_over_focal():
-    from taichi_gs.density import footprint_limit
+    from taichi_gs.stages.deblur.density_control import footprint_limit
 
     means = np.array([[0.0, 0.0, 2.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
     centres = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 1.0]])

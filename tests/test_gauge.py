@@ -9,13 +9,13 @@ import json
 import numpy as np
 import pytest
 
-from taichi_gs.deblur_model import BlurScene
 from taichi_gs.geometry import fit_scale_translation, se3_exp, virtual_pose
 from taichi_gs.io.ply import read_splats
 from taichi_gs.io.trajectory import read_tum
 from taichi_gs.splats import Splats
 from taichi_gs.stages.deblur import PRESETS, run_deblur, shrink_mid
-from taichi_gs.stages.gauge import back_to_stage_2s_frame
+from taichi_gs.stages.deblur.gauge import back_to_stage_2s_frame
+from taichi_gs.stages.deblur.model import BlurScene
 
 WIDTH, HEIGHT = 40, 32
 K = np.array([[38.0, 0.0, 19.3], [0.0, 37.0, 15.6], [0.0, 0.0, 1.0]])

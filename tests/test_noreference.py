@@ -237,7 +237,7 @@ def test_protocol_reports_the_streaks_of_learned_and_true_exposures(tmp_path):
     agrees with the smear the generator recorded (from noise-free depth); a run whose exposure.txt does not
     match the frames is an input error naming the file."""
     from taichi_gs.noreference_report import no_reference_metrics
-    from taichi_gs.stages.deblur_outputs import _format_exposure
+    from taichi_gs.stages.deblur.outputs import _format_exposure
 
     sequence, stage = _run_on_synthetic(tmp_path, lambda sequence, i: (sequence.color(i), sequence.color(i)))
     (stage / "split.json").write_text(json.dumps({"train": [0, 2, 3, 5], "test": [1, 4], "holdout": "every",

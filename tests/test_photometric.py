@@ -109,7 +109,7 @@ def test_epoch_sampling_visits_every_view_once_per_epoch():
 
 
 def test_nearest_filled_takes_the_closest_valid_depth():
-    from taichi_gs.stages.deblur_density import nearest_filled
+    from taichi_gs.stages.deblur.density import nearest_filled
 
     depth = np.zeros((5, 7))
     depth[:, 0], depth[:, 6] = 1.0, 3.0
@@ -119,10 +119,10 @@ def test_nearest_filled_takes_the_closest_valid_depth():
 
 
 def test_uncovered_pixels_get_gaussians_at_the_nearest_depth():
-    from taichi_gs.deblur_model import BlurScene
     from taichi_gs.kernels import runtime
     from taichi_gs.splats import Splats, logit, rgb_to_sh_dc
     from taichi_gs.stages.deblur import fill_uncovered
+    from taichi_gs.stages.deblur.model import BlurScene
 
     runtime.init()
     w, h, f = 40, 30, 40.0

@@ -168,7 +168,7 @@ def test_the_fast_preset_models_a_known_cameras_rolling_shutter(tmp_path, camera
 def test_a_pose_jump_between_neighbours_widens_the_anchors_margin_by_a_bounded_amount(tmp_path, monkeypatch):
     """A frame whose neighbours lie 20 m apart (a tracking failure) would skew its rows by hundreds of pixels:
     the anchors' margin grows by at most ``MAX_SKEW_MARGIN_SCALE`` x ``warp_px``."""
-    from taichi_gs.stages import deblur
+    from taichi_gs.stages.deblur import run as deblur
     from taichi_gs.standins import synthetic_refine_outputs
 
     clip = synth.SynthConfig(width=48, height=32, frames=4, trajectory="turn", blur="extreme", seed=2)

@@ -207,7 +207,7 @@ def test_the_cli_readout_stands_over_a_known_cameras_and_is_checked(tmp_path, ro
 def test_stage_3_trains_on_depth_de_skewed_for_its_readout(tmp_path, monkeypatch, deskew_depth):
     """With a readout, stage 3's depth frames (its depth loss, the fill of uncovered pixels) are de-skewed by the
     motions of stage 2's poses; ``deskew_depth = false`` keeps them as read. Colour stays as read either way."""
-    from taichi_gs.stages import deblur as deblur_stage
+    from taichi_gs.stages.deblur import run as deblur_stage
     from taichi_gs.standins import synthetic_refine_outputs
 
     clip = synth.SynthConfig(width=48, height=32, frames=4, trajectory="handheld", blur="extreme", seed=2)

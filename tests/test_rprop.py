@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from taichi_gs.stages.rprop import GROW, SHRINK, Rprop
+from taichi_gs.stages.deblur.rprop import GROW, SHRINK, Rprop
 
 
 def test_steps_grow_with_a_steady_sign_and_shrink_at_a_flip():

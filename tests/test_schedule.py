@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from taichi_gs.stages import deblur
+from taichi_gs.stages.deblur import run as deblur
 from taichi_gs.stages.schedule import training_scale, views_for_span, window_converged
 
 
@@ -48,7 +48,7 @@ def test_early_views_widen_the_step_only_before_their_share_of_training():
 
 
 def test_warped_views_leave_out_each_odd_groups_middle_view():
-    from taichi_gs.deblur_model import warped_views
+    from taichi_gs.stages.deblur.model import warped_views
 
     assert [warped_views(k, 1) for k in range(3, 10)] == [2, 4, 4, 6, 6, 8, 8]
     assert [warped_views(k, 3) for k in (4, 5, 8, 9)] == [2, 4, 6, 6]  # groups 1-2-1, 2-1-2, 3-2-3, 3-3-3
@@ -63,7 +63,7 @@ def test_warped_views_leave_out_each_odd_groups_middle_view():
     (5.0, 2.0, (4, 3)),  # three anchors: groups 1-2-1 interpolate 2 views, 2-1-2 would interpolate 4
 ])
 def test_odd_views_raise_an_even_count_only_where_no_view_more_is_interpolated(span_px, warp_px, expected):
-    from taichi_gs.stages.deblur import _exposure_sampling, _Frames
+    from taichi_gs.stages.deblur.run import _exposure_sampling, _Frames
 
     focal, depth = 200.0, 2.0
     d = np.zeros((2, 6))
@@ -92,8 +92,8 @@ def test_window_convergence_needs_two_windows_and_a_small_relative_change():
 
 
 def test_moving_the_scene_between_resolutions_keeps_gaussians_and_optimiser_state(tmp_path):
-    from taichi_gs.deblur_model import BlurScene
     from taichi_gs.splats import splats_from_points
+    from taichi_gs.stages.deblur.model import BlurScene
 
     synth = pytest.importorskip("taichi_gs.synth")
     from taichi_gs.io.load import load_sequence

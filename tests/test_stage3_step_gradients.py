@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import taichi as ti
 
-from taichi_gs.deblur_model import BlurScene, exposure_taus
 from taichi_gs.geometry import raster_intrinsics, se3_exp, virtual_pose
 from taichi_gs.kernels import runtime
 from taichi_gs.render import Camera, Rasterizer
 from taichi_gs.splats import Splats
+from taichi_gs.stages.deblur.model import BlurScene, exposure_taus
 
 WIDTH, HEIGHT = 40, 32
 K = np.array([[38.0, 0.0, 19.3], [0.0, 37.0, 15.6], [0.0, 0.0, 1.0]])  # OpenCV convention

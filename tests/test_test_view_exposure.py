@@ -9,11 +9,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from taichi_gs.deblur_model import BlurScene
 from taichi_gs.geometry import invert, se3_exp, se3_log, virtual_pose
 from taichi_gs.splats import Splats
-from taichi_gs.stages.deblur import PRESETS, DeblurConfig, _Frames, _refine_test_exposure, load_stage2, run_deblur
-from taichi_gs.stages.exposures import neighbours_mid_shift
+from taichi_gs.stages.deblur.exposures import neighbours_mid_shift
+from taichi_gs.stages.deblur.model import BlurScene
+from taichi_gs.stages.deblur.run import PRESETS, DeblurConfig, _Frames, _refine_test_exposure, load_stage2, run_deblur
 
 WIDTH, HEIGHT = 48, 40
 K = np.array([[40.0, 0.0, 23.5], [0.0, 40.0, 19.5], [0.0, 0.0, 1.0]])
@@ -83,7 +83,7 @@ def test_a_fit_on_frozen_anchors_recovers_the_exposure_as_the_rendered_fit(seed,
     """[ours] ``test_fit_refresh_px``: warped views from anchor renders kept across the fit's steps recover
     the exposure about as well as the fit that renders its anchor at every step (within 1.3x of its error
     and re-blur residual after the same 60 Rprop steps), rendering the anchor at most every 4th step."""
-    from taichi_gs.stages import deblur
+    from taichi_gs.stages.deblur import run as deblur
 
     made = []
 

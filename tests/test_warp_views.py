@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import taichi as ti
 
-from taichi_gs.deblur_model import BlurScene, FrozenAnchors, anchor_groups, exposure_taus
 from taichi_gs.geometry import invert, raster_intrinsics, se3_exp, virtual_pose
 from taichi_gs.kernels import runtime, warp
 from taichi_gs.kernels.splat import to_device
 from taichi_gs.rolling_shutter import shutter_rows
 from taichi_gs.splats import Splats
-from taichi_gs.stages import deblur
+from taichi_gs.stages.deblur import run as deblur
+from taichi_gs.stages.deblur.model import BlurScene, FrozenAnchors, anchor_groups, exposure_taus
 
 H, W, MARGIN = 18, 22, 4
 K_RASTER = np.array([[30.0, 0.0, 11.3], [0.0, 31.0, 9.1], [0.0, 0.0, 1.0]])
@@ -555,7 +555,7 @@ def test_frozen_anchors_render_again_only_when_moved_or_regrouped():
 
 
 def deblur_rates():
-    from taichi_gs.deblur_model import Rates
+    from taichi_gs.stages.deblur.model import Rates
     return Rates(means=1e-4, quats=1e-3, log_scales=1e-3, opacity_logits=1e-2, colors=1e-2)
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import invert, se3_log, virtual_pose
-from ..photometric import IDENTITY, identity_penalty
-from .deblur_config import DeblurConfig
-from .row_adam import RowAdam
+from ...geometry import invert, se3_log, virtual_pose
+from ...photometric import IDENTITY, identity_penalty
+from ..row_adam import RowAdam
+from .config import DeblurConfig
 
 
 def initial_offsets(poses: np.ndarray, fraction: float) -> np.ndarray:

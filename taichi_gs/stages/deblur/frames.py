@@ -10,17 +10,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..deblur_model import BlurScene
-from ..errors import InputError
-from ..geometry import median_depths
-from ..io.ply import read_splats
-from ..io.sequence import SOURCED, Sequence
-from ..io.trajectory import check_frame_times, read_tum
-from ..noreference import laplacian_variance, sharpest_holdout
-from ..rolling_shutter import DeskewedSequence, readout_skews
-from ..splats import Splats
-from .deblur_config import DeblurConfig
-from .schedule import downsample_depth, scaled_intrinsics
+from ...errors import InputError
+from ...geometry import median_depths
+from ...io.ply import read_splats
+from ...io.sequence import SOURCED, Sequence
+from ...io.trajectory import check_frame_times, read_tum
+from ...noreference import laplacian_variance, sharpest_holdout
+from ...rolling_shutter import DeskewedSequence, readout_skews
+from ...splats import Splats
+from ..schedule import downsample_depth, scaled_intrinsics
+from .config import DeblurConfig
+from .model import BlurScene
 
 
 def split_frames(n_frames: int, holdout_every: int) -> tuple[list[int], list[int]]:

@@ -10,22 +10,22 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import profiling
-from ..deblur_model import BlurScene
-from ..geometry import virtual_pose
-from ..io import jsonout
-from ..io.atomic import write_text
-from ..io.images import encode_depth, to_uint8, write_png
-from ..io.ply import write_splats
-from ..io.sequence import Sequence
-from ..io.trajectory import format_tum, write_tum
-from ..photometric import apply_affine
-from ..plots import image_grid, line_plot
-from ..splats import Splats
-from .deblur_config import DeblurConfig
-from .deblur_frames import _Frames, _Shutter
+from ... import profiling
+from ...geometry import virtual_pose
+from ...io import jsonout
+from ...io.atomic import write_text
+from ...io.images import encode_depth, to_uint8, write_png
+from ...io.ply import write_splats
+from ...io.sequence import Sequence
+from ...io.trajectory import format_tum, write_tum
+from ...photometric import apply_affine
+from ...plots import image_grid, line_plot
+from ...splats import Splats
+from .config import DeblurConfig
 from .exposures import Exposures, exposure_px
+from .frames import _Frames, _Shutter
 from .gauge import FrameShift
+from .model import BlurScene
 
 
 @dataclass

@@ -15,8 +15,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..geometry import fit_scale_translation, virtual_pose
-from ..splats import Splats
+from ...geometry import fit_scale_translation, virtual_pose
+from ...splats import Splats
 
 
 @dataclass(frozen=True)

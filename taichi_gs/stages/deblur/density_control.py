@@ -11,11 +11,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import profiling
-from .gaussian_store import GaussianStore
-from .geometry import quat_to_rotmat
-from .render import density_stats
-from .splats import logit
+from ... import profiling
+from ...gaussian_store import GaussianStore
+from ...geometry import quat_to_rotmat
+from ...render import density_stats
+from ...splats import logit
 
 SPLIT_SHRINK = 1.6  # a split Gaussian's two halves are this much smaller (3DGS)
 RESET_OPACITY = 0.01  # 3DGS's opacity reset value

@@ -6,10 +6,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .. import profiling
-from ..deblur_model import BlurScene
-from ..density import DensitySchedule
-from .deblur_config import DeblurConfig
+from ... import profiling
+from .config import DeblurConfig
+from .density_control import DensitySchedule
+from .model import BlurScene
 
 
 def density_schedule(config: DeblurConfig, extent: float, width: int, centres: np.ndarray,

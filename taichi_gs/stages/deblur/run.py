@@ -18,30 +18,27 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import profiling
-from ..deblur_model import (
-    BlurScene,
-    BlurStep,
-    FrozenAnchors,
-    Rates,
-    anchor_count,
-    warped_views,
-)
-from ..density import DensitySchedule, footprint_limit
-from ..errors import InputError
-from ..io.sequence import Sequence
-from ..photometric import IDENTITY, identity_penalty
-from ..rolling_shutter import (
+from ... import profiling
+from ...errors import InputError
+from ...io.sequence import Sequence
+from ...photometric import IDENTITY, identity_penalty
+from ...rolling_shutter import (
     DeskewedSequence,
     deskewing_motions,
     readout_motions,
     stage_readout_ms,
 )
-from ..splats import Splats
-from . import checkpoint
-from .deblur_config import PRESETS, DeblurConfig, scaled_schedule, with_headroom
-from .deblur_density import density_schedule, fill_uncovered
-from .deblur_frames import (
+from ...splats import Splats
+from .. import checkpoint
+from ..declaration import StageContext, StageDeclaration, StageInputs, StageRun
+from ..divergence import DivergenceGuard
+from ..row_adam import RowAdam
+from ..schedule import exp_decay, training_scale, views_for_span
+from .config import PRESETS, DeblurConfig, scaled_schedule, with_headroom
+from .density import density_schedule, fill_uncovered
+from .density_control import DensitySchedule, footprint_limit
+from .exposures import Exposures, colour_step, exposure_px, keep_open, shrink_mid
+from .frames import (
     _Frames,
     _load_frames,
     _phase,
@@ -53,14 +50,17 @@ from .deblur_frames import (
     training_frame,
     with_sh_degree,
 )
-from .deblur_outputs import DeblurResult, _step_warnings, _write_outputs
-from .declaration import StageContext, StageDeclaration, StageInputs, StageRun
-from .divergence import DivergenceGuard
-from .exposures import Exposures, colour_step, exposure_px, keep_open, shrink_mid
 from .gauge import back_to_stage_2s_frame
-from .row_adam import RowAdam
+from .model import (
+    BlurScene,
+    BlurStep,
+    FrozenAnchors,
+    Rates,
+    anchor_count,
+    warped_views,
+)
+from .outputs import DeblurResult, _step_warnings, _write_outputs
 from .rprop import Rprop
-from .schedule import exp_decay, training_scale, views_for_span
 
 PARAMETER_CHECK_EVERY = 50  # iterations between divergence checks of the parameters (a device copy)
 MAX_SKEW_MARGIN_SCALE = 4.0  # [ours] a rolling shutter widens the anchors' margin by at most this many warp_px
@@ -256,7 +256,7 @@ def warp_margin(config: DeblurConfig, shutter_px: float = 0.0) -> int:
 def _anchors(d: np.ndarray, focal: float, depth: float, config: DeblurConfig, k: int) -> int:
     """[ours] Anchor renders of one exposure with ``warp_views`` (0: render all k views): the fewest that
     leave every virtual view within ``warp_px`` of its anchor, ceil(span / (2 warp_px)), made odd so that one
-    sits at mid-exposure (``deblur_model.anchor_count``)."""
+    sits at mid-exposure (``model.anchor_count``)."""
     if not config.warp_views:
         return 0
     return anchor_count(k, math.ceil(exposure_px(d[0], d[1], focal, depth) / (2.0 * config.warp_px)))

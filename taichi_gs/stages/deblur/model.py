@@ -1,7 +1,7 @@
 """Stage 3's trainable scene: full 3D Gaussians (SH colour, opacity, anisotropic scale, rotation,
 position) kept on the device, trained against blurred frames through the k-view blur model, with
-3DGS-style densification and pruning (:mod:`density`, over the :mod:`gaussian_store`). Exposure
-poses live on the host (12 numbers per frame) in :mod:`stages.deblur`."""
+3DGS-style densification and pruning (:mod:`density_control`, over the :mod:`gaussian_store`). Exposure
+poses live on the host (12 numbers per frame) in :mod:`run`."""
 
 from __future__ import annotations
 
@@ -10,17 +10,31 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import profiling
-from .density import DensityControl
-from .gaussian_store import FIELDS, GaussianStore, morton_order
-from .geometry import (
-    exposure_pose_gradients, invert, median_depth, raster_intrinsics, relative_pose_gradients, so3_log,
+from ... import profiling
+from ...gaussian_store import FIELDS, GaussianStore, morton_order
+from ...geometry import (
+    exposure_pose_gradients,
+    invert,
+    median_depth,
+    raster_intrinsics,
+    relative_pose_gradients,
+    so3_log,
     virtual_pose,
 )
-from .noreference import eroded
-from .render import Camera, Rasterizer, affine, blur, host_copy, losses, to_device, warp
-from .rolling_shutter import shutter_rows
-from .splats import SH_C0, Splats, logit, rgb_to_sh_dc
+from ...noreference import eroded
+from ...render import (
+    Camera,
+    Rasterizer,
+    affine,
+    blur,
+    host_copy,
+    losses,
+    to_device,
+    warp,
+)
+from ...rolling_shutter import shutter_rows
+from ...splats import SH_C0, Splats, logit, rgb_to_sh_dc
+from .density_control import DensityControl
 
 TRAINED = FIELDS  # every parameter of a full 3D Gaussian learns in stage 3
 
@@ -110,7 +124,7 @@ class FrozenAnchors:
         self.views: list = []
         self.renders = 0  # anchor renders made (for tests and benchmarks)
 
-    def anchors(self, scene: "BlurScene", wanted: list[np.ndarray]) -> tuple[list, list[np.ndarray]]:
+    def anchors(self, scene: BlurScene, wanted: list[np.ndarray]) -> tuple[list, list[np.ndarray]]:
         """(views, the poses they were rendered at) for anchors wanted at poses ``wanted``."""
         if len(wanted) != len(self.poses) or any(self._moved_px(old, new) > self.refresh_px
                                                   for old, new in zip(self.poses, wanted)):

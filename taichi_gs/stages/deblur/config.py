@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-from ..validation import (
+from ...validation import (
     ANY,
     COUNT,
     FRACTION,
