@@ -51,10 +51,10 @@ CASES = ("render", "stage 3 paper", "stage 3 fast", "stage 2")
 def case(name: str, n: int, width: int, height: int) -> Callable[[], object]:
     """One call of case ``name`` (see the module) on ``n`` random Gaussians at ``width`` x ``height``; the
     blurred frame a fixed random image, its depth a plane (the counts do not depend on either)."""
-    from taichi_gs.refine_model import DepthRefiner
     from taichi_gs.render import Camera, DeviceGaussians, Rasterizer, to_device
     from taichi_gs.splats import Splats
     from taichi_gs.stages.deblur.model import BlurScene, Rates
+    from taichi_gs.stages.refine.model import DepthRefiner
 
     (means, quats, log_scales, logits, colors), K = scene(n, width, height)
     rng = np.random.default_rng(1)

@@ -88,8 +88,8 @@ def suite(args, root: Path) -> None:
 
 def timing(root: Path) -> None:
     """Seconds per iteration at two sizes (few iterations) and peak memory with 1M Gaussians."""
-    from taichi_gs.refine_model import DepthRefiner
     from taichi_gs.splats import logit
+    from taichi_gs.stages.refine.model import DepthRefiner
 
     print("\n| size | frames | Gaussians | s/iter (fast preset, 8 N iterations) |\n|---|---|---|---|")
     for size in ((320, 240), (640, 480)):

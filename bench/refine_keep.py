@@ -24,7 +24,7 @@ from taichi_gs.geometry import invert
 from taichi_gs.io.load import load_sequence
 from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
 from taichi_gs.stages.refine import FAST_TRAINING_PER_FRAME, PRESETS, run_refine
-from taichi_gs.stages.refine_accept import accept_refined_poses
+from taichi_gs.stages.refine.accept import accept_refined_poses
 
 STEPS = {"1 cm steps (method)": (1e-2, 1e-5), "0.1 mm steps (default)": (1e-4, 1e-6)}
 

@@ -172,12 +172,12 @@ ADAM_MOVE_TOL = 1e-3  # see test_stage2_refine_steps_match_cpu
 
 
 def refine_outputs() -> dict[str, np.ndarray]:
-    """A few stage-2 steps (taichi_gs.refine_model.DepthRefiner, f32): a noisy, partly transparent
+    """A few stage-2 steps (taichi_gs.stages.refine.model.DepthRefiner, f32): a noisy, partly transparent
     layer of Gaussians pulled onto a tilted plane's depth seen by two cameras. Per step the loss
     values, both cameras' pose gradients and the Gaussians' gradients; after the steps how far the
     centres and opacity logits moved."""
     from taichi_gs.geometry import se3_exp
-    from taichi_gs.refine_model import DepthRefiner
+    from taichi_gs.stages.refine.model import DepthRefiner
 
     rng = np.random.default_rng(7)
     width, height = 64, 48

@@ -114,7 +114,7 @@ def test_missing_stage1_outputs_are_input_errors(tmp_path):
 def test_spatial_order_changes_the_memory_layout_not_the_steps():
     """``spatial_order`` puts stage 2's Gaussians in Morton order: the same losses and pose gradients
     (up to float32 summation order), and ``kept_indices`` maps each Gaussian back to its input row."""
-    from taichi_gs.refine_model import DepthRefiner
+    from taichi_gs.stages.refine.model import DepthRefiner
 
     rng = np.random.default_rng(3)
     width, height = 64, 48

@@ -19,7 +19,7 @@ from taichi_gs.evaluate import ate, rpe
 from taichi_gs.geometry import invert
 from taichi_gs.stages.pose import PoseConfig, fuse_points, run_pose
 from taichi_gs.stages.refine import FAST_TRAINING_PER_FRAME, PRESETS, run_refine
-from taichi_gs.stages.refine_accept import accept_refined_poses
+from taichi_gs.stages.refine.accept import accept_refined_poses
 
 synth = pytest.importorskip("taichi_gs.synth")
 

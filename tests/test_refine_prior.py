@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 
 from taichi_gs.geometry import invert, se3_exp, se3_log
-from taichi_gs.stages.refine import PRESETS, _adam_pose_step, _pose_prior_gradient
+from taichi_gs.stages.refine.run import PRESETS, _adam_pose_step, _pose_prior_gradient
 from taichi_gs.stages.row_adam import RowAdam
 
 CONFIG = dataclasses.replace(PRESETS["fast"], pose_prior_weight=0.003, pose_prior_sigma_m=0.003, pose_prior_sigma_deg=0.1)

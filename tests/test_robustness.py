@@ -179,7 +179,7 @@ def test_a_diverging_optimiser_stops_naming_stage_and_iteration(tiny, tmp_path, 
     from typer.testing import CliRunner
 
     from taichi_gs.cli import app
-    from taichi_gs.refine_model import DepthRefiner
+    from taichi_gs.stages.refine.model import DepthRefiner
 
     run = tmp_path / "run"
     shutil.copytree(tiny["reference"], run, ignore=shutil.ignore_patterns("refine", "deblur"))
@@ -201,8 +201,8 @@ def test_divergence_mid_stage_exits_4_keeping_the_last_good_checkpoint(tiny, tmp
     from typer.testing import CliRunner
 
     from taichi_gs.cli import app
-    from taichi_gs.refine_model import DepthRefiner
     from taichi_gs.stages.deblur.model import BlurScene
+    from taichi_gs.stages.refine.model import DepthRefiner
 
     run = tmp_path / "run"
     kept = ("pose",) if stage == "refine" else ("pose", "refine")

@@ -22,16 +22,7 @@ from ...geometry import (
     virtual_pose,
 )
 from ...noreference import eroded
-from ...render import (
-    Camera,
-    Rasterizer,
-    affine,
-    blur,
-    host_copy,
-    losses,
-    to_device,
-    warp,
-)
+from ...render import Camera, Rasterizer, affine, blur, host_copy, losses, to_device, warp
 from ...rolling_shutter import shutter_rows
 from ...splats import SH_C0, Splats, logit, rgb_to_sh_dc
 from .density_control import DensityControl

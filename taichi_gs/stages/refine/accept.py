@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import invert
-from ..io.sequence import Sequence
-from .pose.verify import FrameView, VerifySettings, frame_view, verify
+from ...geometry import invert
+from ...io.sequence import Sequence
+from ..pose.verify import FrameView, VerifySettings, frame_view, verify
 
 
 @dataclass(frozen=True)

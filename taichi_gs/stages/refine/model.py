@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import profiling
-from .gaussian_store import GaussianStore, morton_order
-from .geometry import raster_intrinsics
-from .render import Camera, Rasterizer, host_copy, losses, to_device
-from .splats import logit
+from ... import profiling
+from ...gaussian_store import GaussianStore, morton_order
+from ...geometry import raster_intrinsics
+from ...render import Camera, Rasterizer, host_copy, losses, to_device
+from ...splats import logit
 
 FIXED_SCALE = ("means", "opacity_logits")
 FREE_SCALE = FIXED_SCALE + ("log_scales", "quats")
