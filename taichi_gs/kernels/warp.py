@@ -390,8 +390,8 @@ _lane_buffers: dict[str, ti.Ndarray] = {}  # the CPU backward's private gradient
 def _args(transforms: np.ndarray, K: np.ndarray, margin: int, height: int, dtype) -> tuple:
     """(V, rows per view, device rows [R row-major, t, identity flag] of the views' 4x4 target -> anchor
     transforms, the intrinsics vector). ``transforms`` is (V, 4, 4), or (V, H, 4, 4) with one transform per
-    target image row (a rolling shutter, ``deblur_model``). A transform within ``IDENTITY_TOLERANCE`` of the
-    identity is the anchor's own pose (the middle view of an odd group, ``deblur_model.anchor_groups``): it
+    target image row (a rolling shutter, ``stages.deblur.model``). A transform within ``IDENTITY_TOLERANCE`` of the
+    identity is the anchor's own pose (the middle view of an odd group, ``stages.deblur.model.anchor_groups``): it
     is flagged, and the kernels read its pixels instead of interpolating them (with a margin, so that the
     central differences of its pose gradient stay in the image)."""
     M = np.array(transforms, dtype=np.float64)  # a copy: the caller's stay as given

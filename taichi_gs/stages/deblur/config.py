@@ -166,7 +166,7 @@ class DeblurConfig:
     # where they were read, along each frame's velocity from its neighbours in the trajectory
     # (``rolling_shutter``); needs warp_views. The sharp renders and "error" densification stay global-shutter.
     # camera_readout: with readout_ms 0 and warp_views, the readout of a camera the sequence's reading names
-    # where it is known (``rolling_shutter.KNOWN_READOUT_MS``: TUM fr1, 7-Scenes), else 0
+    # where it is known (``io.readout.KNOWN_READOUT_MS``: TUM fr1, 7-Scenes), else 0
     readout_ms: float = setting(0.0, NON_NEGATIVE)
     camera_readout: bool = False
     # [ours] with a readout, the depth frames are de-skewed to their frames' poses (rolling_shutter.DeskewedSequence,

@@ -180,7 +180,7 @@ class PoseConfig:
     # from them (rolling_shutter.readout_motions), every frame de-skewed to its middle row's pose
     # (rolling_shutter.DeskewedSequence), and the pairs, the graph and the fused cloud computed again on the
     # de-skewed frames: about 1.4x the stage's time. 0: a global shutter. camera_readout: with readout_ms 0, the
-    # readout of a camera the sequence's reading names (rolling_shutter.KNOWN_READOUT_MS; on in the fast preset).
+    # readout of a camera the sequence's reading names (io.readout.KNOWN_READOUT_MS; on in the fast preset).
     # Not with precomputed flows (flow_dir), which are the frames' as read
     readout_ms: float = setting(0.0, NON_NEGATIVE, pair=False)
     camera_readout: bool = setting(False, pair=False)
