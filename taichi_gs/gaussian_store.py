@@ -134,3 +134,18 @@ def morton_order(points: np.ndarray) -> np.ndarray:
     code = (_spread_bits(cells[:, 0]) | (_spread_bits(cells[:, 1]) << np.uint64(1))
             | (_spread_bits(cells[:, 2]) << np.uint64(2)))
     return np.argsort(code, kind="stable")
+
+
+class OnStore:
+    """A trainable scene whose Gaussians live in ``self.store`` (a :class:`GaussianStore`)."""
+
+    store: GaussianStore
+
+    @property
+    def gaussians(self):
+        """The device Gaussians (``render.DeviceGaussians``) of the store."""
+        return self.store.gaussians
+
+    @property
+    def count(self) -> int:
+        return self.store.count

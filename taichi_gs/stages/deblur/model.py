@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ... import profiling
-from ...gaussian_store import FIELDS, GaussianStore, morton_order
+from ...gaussian_store import FIELDS, GaussianStore, OnStore, morton_order
 from ...geometry import (
     exposure_pose_gradients,
     invert,
@@ -132,7 +132,7 @@ class FrozenAnchors:
         return float(self.focal * (np.linalg.norm(relative[:3, 3]) / self.depth + angle))
 
 
-class BlurScene:
+class BlurScene(OnStore):
     """Gaussians rendered at one resolution (``K`` in OpenCV convention; the rasterizer's half-pixel
     shift is applied here). :meth:`step` takes one blurred frame's k-view loss and updates the
     Gaussians (``store``); ``density`` observes the steps and grows and trims them. ``precision``
@@ -164,15 +164,6 @@ class BlurScene:
         self.warp_depths: list = []  # per anchor (views, H, W): the warp's depths, for its backward
         self.grad_anchor = None  # (H + 2m, W + 2m, 3): dL/d an anchor's colour
         self._rows: dict[bytes, np.ndarray] = {}  # shutter_rows of the readout motions seen, at this height
-
-    @property
-    def gaussians(self):
-        """The device Gaussians (``render.DeviceGaussians``) of the store."""
-        return self.store.gaussians
-
-    @property
-    def count(self) -> int:
-        return self.store.count
 
     def camera(self, cam_to_world: np.ndarray) -> Camera:
         return Camera(self.K, cam_to_world, self.width, self.height)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ... import profiling
-from ...gaussian_store import GaussianStore, morton_order
+from ...gaussian_store import GaussianStore, OnStore, morton_order
 from ...geometry import raster_intrinsics
 from ...render import Camera, Rasterizer, host_copy, losses, to_device
 from ...splats import logit
@@ -16,7 +16,7 @@ FIXED_SCALE = ("means", "opacity_logits")
 FREE_SCALE = FIXED_SCALE + ("log_scales", "quats")
 
 
-class DepthRefiner:
+class DepthRefiner(OnStore):
     """Gaussians initialised isotropic with one scale. One :meth:`step` renders depth at one or
     more cameras, takes the alpha-normalised masked depth L1 and coverage losses (averaged over the
     cameras) and the opacity-binarisation loss, back-propagates to the Gaussians and the camera poses, and applies
@@ -49,15 +49,6 @@ class DepthRefiner:
         self.grad_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_alpha = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.loss_values = losses.LossValues(self.gaussians.dtype)  # a step's loss values, read once per step
-
-    @property
-    def gaussians(self):
-        """The device Gaussians (``render.DeviceGaussians``) of the store."""
-        return self.store.gaussians
-
-    @property
-    def count(self) -> int:
-        return self.store.count
 
     def _depth_backward(self, target_depth: np.ndarray, cam_to_world: np.ndarray, weight: float,
                         coverage_weight: float, row: int) -> None:
