@@ -52,11 +52,7 @@ def make(dt) -> SimpleNamespace:
     """Kernels of the GPU path for float type ``dt``."""
     proj_f = project.make(dt)
     blend_f = rasterize.make(dt)
-    mat4 = ti.types.matrix(4, 4, dt)
-    vec4 = ti.types.vector(4, dt)
-    vec3 = ti.types.vector(3, dt)
-    fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
-    ind = lambda ndim: ti.types.ndarray(dtype=ti.i32, ndim=ndim)  # noqa: E731
+    mat4, vec4, vec3, fnd, ind, _ = runtime.kernel_types(dt)
     sync = ti.simt.block.sync
     scan_f = scan.funcs()
 

@@ -228,6 +228,16 @@ def loop_spread() -> int:
     return CPU_LOOP_SPREAD if backend is None or backend.arch == "cpu" else 1
 
 
+def kernel_types(dt) -> tuple:
+    """The types a kernel builder annotates with, for float type ``dt``: (mat4, vec4, vec3, float ndarray of a
+    rank, i32 ndarray of a rank, i64 ndarray of a rank); the ndarray ones are functions of the rank."""
+    def arrays(dtype):
+        return lambda ndim: ti.types.ndarray(dtype=dtype, ndim=ndim)
+
+    return (ti.types.matrix(4, 4, dt), ti.types.vector(4, dt), ti.types.vector(3, dt), arrays(dt), arrays(ti.i32),
+            arrays(ti.i64))
+
+
 def require_f64(what: str = "float64 kernels") -> None:
     """Raise :class:`BackendError` when the running backend cannot run float64 kernels."""
     if _backend is not None and not _backend.has_f64:

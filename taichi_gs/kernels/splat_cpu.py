@@ -26,12 +26,7 @@ def cpu_kernels(dt) -> SimpleNamespace:
     ``blend`` and ``backward`` (one thread per tile; see the module docstring)."""
     proj_f = project.make(dt)
     blend_f = rasterize.make(dt)
-    mat4 = ti.types.matrix(4, 4, dt)
-    vec4 = ti.types.vector(4, dt)
-    vec3 = ti.types.vector(3, dt)
-    fnd = lambda ndim: ti.types.ndarray(dtype=dt, ndim=ndim)  # noqa: E731
-    ind = lambda ndim: ti.types.ndarray(dtype=ti.i32, ndim=ndim)  # noqa: E731
-    kind = lambda ndim: ti.types.ndarray(dtype=ti.i64, ndim=ndim)  # noqa: E731
+    mat4, vec4, vec3, fnd, ind, kind = runtime.kernel_types(dt)
     spread = runtime.loop_spread()  # per-tile loops: n_tiles x spread indices (see loop_spread)
 
     # Shapes: N Gaussians, M SH coefficients, S tile slots (one per Gaussian per tile it touches),
