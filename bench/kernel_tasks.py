@@ -3,11 +3,14 @@ top-level loop of a kernel) of rasterizer forward + backward passes on the synth
 float32 on the chosen backend.
 
     python bench/kernel_tasks.py [--arch cpu] [--combo 100000:256x192] [--passes 30] [--rounds 3] [--baseline ROOT]
+        [--run RUN_DIR]
 
 Tasks are named ``kernel:task loop`` (Taichi's numbering of a kernel's top-level loops; the compile counter
 is dropped so that two code roots line up, as long as their loops are the same). A second table sums each
 kernel's loops. ``--baseline ROOT`` profiles another code root in alternating rounds (see ``ab.py``) and
-prints the ratio of this tree's median to the baseline's per task and per kernel.
+prints the ratio of this tree's median to the baseline's per task and per kernel. ``--run RUN_DIR`` profiles a
+finished ``taichi-gs reconstruct`` folder's trained scene instead (deblur/splats.ply at the input size, the passes
+cycling over the run's final poses; ``--combo`` is then ignored).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import argparse
 import json
 import re
 import statistics
+from pathlib import Path
 
 import numpy as np
 
@@ -45,9 +49,23 @@ def init_with_profiler(arch: str, profiler: bool = True):
         ti.init = init
 
 
-def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int) -> dict[str, float]:
+def run_scene(run_dir: Path) -> tuple[list[np.ndarray], np.ndarray, tuple[int, int], list[np.ndarray]]:
+    """(Gaussian parameters, K, (width, height), camera-to-world poses) of a finished run's trained scene."""
+    from taichi_gs.export import final_poses
+    from taichi_gs.io.load import load_sequence
+    from taichi_gs.io.ply import read_splats
+    from taichi_gs.render import raster_intrinsics
+
+    sequence = load_sequence(json.loads((run_dir / "run.json").read_text())["sequence"])
+    intr = sequence.intrinsics
+    s = read_splats(run_dir / "deblur" / "splats.ply")
+    params = [s.means, s.quats, s.log_scales, s.opacity_logits, s.sh]
+    return params, raster_intrinsics(intr.K()), (intr.width, intr.height), list(final_poses(run_dir, sequence))
+
+
+def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int, run_dir: Path | None = None) -> dict[str, float]:
     """{task: mean ms per forward + backward pass} over ``passes`` passes after three warm-up passes; the
-    camera turns a little between passes."""
+    camera turns a little between passes (with ``run_dir``: its trained scene at its poses, in turn)."""
     import taichi as ti
     from taichi.lang import impl
 
@@ -57,14 +75,17 @@ def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int) -> dict
     from taichi_gs.kernels.splat import to_device
     from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
 
-    width, height = size
-    params, K = scene(n, width, height)
+    if run_dir is None:
+        width, height = size
+        params, K = scene(n, width, height)
+        poses = [se3_exp(np.array([0.01 * i, 0.0, 0.0, 0.0, 0.004 * i, 0.0])) for i in range(-2, 3)]
+    else:
+        params, K, (width, height), poses = run_scene(run_dir)
     gs = DeviceGaussians.from_numpy(*params)
     rast = Rasterizer(ti.f32)
     d_rgb = to_device(np.random.default_rng(1).normal(size=(height, width, 3)), ti.f32)
     d_depth = to_device(np.random.default_rng(2).normal(size=(height, width)), ti.f32)
-    cameras = [Camera(K, se3_exp(np.array([0.01 * i, 0.0, 0.0, 0.0, 0.004 * i, 0.0])), width, height)
-               for i in range(-2, 3)]
+    cameras = [Camera(K, pose, width, height) for pose in poses]
     for i in range(passes + 3):
         if i == 3:
             ti.sync()
@@ -87,14 +108,16 @@ def main() -> None:
     parser.add_argument("--arch", default="cpu")
     parser.add_argument("--combo", default="100000:256x192", help="Gaussians:WxH")
     parser.add_argument("--passes", type=int, default=30)
+    parser.add_argument("--run", type=Path, help="a finished reconstruct folder: profile its trained scene")
     add_arguments(parser)
     args = parser.parse_args()
     if args.json:
         n, (w, h) = parse_combo(args.combo)
-        print(json.dumps(profile_tasks(args.arch, n, (w, h), args.passes)))
+        print(json.dumps(profile_tasks(args.arch, n, (w, h), args.passes, args.run)))
         return
     n, size = args.combo.split(":")
-    rounds = alternate(__file__, ["--arch", args.arch, "--combo", args.combo, "--passes", str(args.passes)],
+    run_args = ["--run", str(args.run.resolve())] if args.run else []
+    rounds = alternate(__file__, ["--arch", args.arch, "--combo", args.combo, "--passes", str(args.passes), *run_args],
                        args.baseline, args.rounds)
 
     def median(name: str, task: str) -> float:
@@ -102,7 +125,8 @@ def main() -> None:
 
     tasks = sorted({t for results in rounds.values() for r in results for t in r},
                    key=lambda t: -median("this tree", t))  # a loop of one tree alone shows 0 in the other
-    print(run_line(args.arch) + f", {n} Gaussians at {size}; mean ms per forward + backward pass (median over rounds)")
+    scene_name = f"{args.run}'s trained scene at its poses" if args.run else f"{n} Gaussians at {size}"
+    print(run_line(args.arch) + f", {scene_name}; mean ms per forward + backward pass (median over rounds)")
     header = "| task | this tree |" + (" baseline | ratio |" if args.baseline else "")
     print(header)
     print("|" + "---|" * (header.count("|") - 1))

@@ -147,6 +147,7 @@ def make(dt) -> SimpleNamespace:
                 state[p + c] = 0.0
             state[p + F_LAST] = -1.0
         active = (box[2] - box[0] + 1) * (box[3] - box[1] + 1)
+        row_active = ti.Vector([box[2] - box[0] + 1 for _ in ti.static(range(TILE))])  # unfinished pixels per row
         start = tile_start[t]
         for j in range(start, tile_start[t + 1]):
             if active == 0:
@@ -159,6 +160,8 @@ def make(dt) -> SimpleNamespace:
             sg = screen_gaussian(entries, j)
             local = ti.cast(j - start, dt)
             for v in range(eb[1], eb[3] + 1):
+                if row_active[v - box[1]] == 0:  # every pixel of the row finished: nothing to blend
+                    continue
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
                     p = pixel_record(v, u, t, box, F_WIDTH)
@@ -172,6 +175,7 @@ def make(dt) -> SimpleNamespace:
                                 if next_trans < dt(MIN_TRANSMITTANCE):
                                     state[p + F_TRANS] = -trans
                                     active -= 1
+                                    row_active[v - box[1]] -= 1
                                 else:
                                     w = alpha * trans
                                     if ti.static(with_colour):
@@ -204,20 +208,29 @@ def make(dt) -> SimpleNamespace:
         a depth-and-alpha render) the colour terms are skipped and the slots' colour gradients are 0."""
         box = tile_pixels(t, tiles_x, width, height)
         last = -1
+        row_last = ti.Vector([-1 for _ in ti.static(range(TILE))])  # the largest pixel_last of each row
         for v, u in ti.ndrange((box[1], box[3] + 1), (box[0], box[2] + 1)):
             p = pixel_record(v, u, t, box, B_WIDTH)
             final_trans = out_trans[v, u]
             g_rgb = vec3(d_rgb[v, u, 0], d_rgb[v, u, 1], d_rgb[v, u, 2])
+            g_depth = d_depth[v, u]
+            g_alpha = d_alpha[v, u]
             state[p + B_TRANS] = final_trans
             if ti.static(with_colour):  # the background's share of S (module docstring)
-                state[p + B_BEHIND] = final_trans * (g_rgb.dot(bg) - d_alpha[v, u])
+                state[p + B_BEHIND] = final_trans * (g_rgb.dot(bg) - g_alpha)
             else:
-                state[p + B_BEHIND] = -final_trans * d_alpha[v, u]
+                state[p + B_BEHIND] = -final_trans * g_alpha
             for c in ti.static(range(3)):
                 state[p + B_GRAD + c] = g_rgb[c]
-            state[p + B_GRAD + 3] = d_depth[v, u]
-            state[p + B_LAST] = ti.cast(out_last[v, u], dt)
-            last = ti.max(last, out_last[v, u])
+            state[p + B_GRAD + 3] = g_depth
+            # a pixel without image gradients adds exact zeros to every slot: it is not replayed
+            silent = g_depth == 0.0 and g_alpha == 0.0
+            if ti.static(with_colour):
+                silent = silent and g_rgb[0] == 0.0 and g_rgb[1] == 0.0 and g_rgb[2] == 0.0
+            pixel_last = ti.select(silent, -1, out_last[v, u])
+            state[p + B_LAST] = ti.cast(pixel_last, dt)
+            last = ti.max(last, pixel_last)
+            row_last[v - box[1]] = ti.max(row_last[v - box[1]], pixel_last)
         start = tile_start[t]
         for j in range(start + last + 1, tile_start[t + 1]):
             for c in ti.static(range(N_SLOT_GRADS)):
@@ -235,6 +248,8 @@ def make(dt) -> SimpleNamespace:
             local = ti.cast(jj, dt)
             acc = ti.Vector.zero(dt, N_SLOT_GRADS)
             for v in range(eb[1], eb[3] + 1):
+                if jj > row_last[v - box[1]]:  # no pixel of the row saw this entry (or has gradients)
+                    continue
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
                     p = pixel_record(v, u, t, box, B_WIDTH)
