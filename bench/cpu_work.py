@@ -1,15 +1,18 @@
 """The CPU path's blending work on a trained scene: Gaussian-pixel evaluations of one render's forward and backward
 (``kernels/rasterize.py``'s loops, counted from the render's own tile lists), and the CPU time that work is worth.
 
-    python bench/cpu_work.py RUN_DIR [--frames 4] [--flops-fwd 40] [--flops-bwd 90] [--gflops 4.9]
+    python bench/cpu_work.py RUN_DIR [--frames 4] [--margin 14] [--flops-fwd 40] [--flops-bwd 90] [--gflops 4.9]
 
 RUN_DIR is a finished ``taichi-gs reconstruct`` folder (deblur/splats.ply, the final trajectory); its frames are
-rendered at the input size from their final poses. Counts per render:
+rendered at the input size from their final poses, with ``--margin`` pixels more on every side (stage 3's padded
+anchor renders: 14 px in the fast preset at the sample's size). Counts per render:
 - entries: tile slots (a Gaussian in a tile's depth-sorted list);
 - forward visits: pixels inside each entry's row spans (``row_span``), every entry of every tile (an upper bound:
-  a tile whose pixels all saturate stops early); "forward useful" keeps the visits of pixels not yet saturated;
+  a tile whose pixels all saturate stops early);
 - backward visits: the same spans over each tile's replayed entries (up to its largest last contributor), and
-  "backward evaluations" those the replay evaluates (entry index <= the pixel's last contributor).
+  "backward evaluations" those the replay evaluates (entry index <= the pixel's last contributor), and "backward
+  evaluations inside" those of pixels inside the unpadded image (a margin pixel has gradients only where a warped
+  view samples it).
 The time estimate is evaluations x flops per evaluation / (cores x sustained flop rate per core): a model, not a
 measurement; the flop counts and the rate are the arguments (their defaults and why: ``--help``).
 """
@@ -56,7 +59,7 @@ def spans(entries: np.ndarray, tile_of: np.ndarray, tiles_x: int, width: int, he
     return idx, v, lo, hi
 
 
-def count_render(view, width: int, height: int) -> dict:
+def count_render(view, width: int, height: int, margin: int = 0) -> dict:
     """Counts of one CPU render (see the module docstring)."""
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
     n_tiles = tiles_x * tiles_y
@@ -78,11 +81,12 @@ def count_render(view, width: int, height: int) -> dict:
     pix_v = np.repeat(v, length)
     pix_u = np.repeat(lo, length) + (np.arange(length.sum()) - np.repeat(np.cumsum(length) - length, length))
     evaluated = local[pix_entry] <= last[pix_v, pix_u]
+    inside = (pix_v >= margin) & (pix_v < height - margin) & (pix_u >= margin) & (pix_u < width - margin)
     return {
         "entries": n_entries, "tiles": n_tiles, "pixels": width * height,
         "rows": int(len(idx)), "forward_visits": int(length.sum()),
-        "forward_useful": int(evaluated.sum()),  # a pixel saturated before the entry does no work there
         "backward_visits": int(length[replayed].sum()), "backward_evaluations": int(evaluated.sum()),
+        "backward_evaluations_inside": int((evaluated & inside).sum()),
         "saturated_pixels": int((trans < 1e-2).sum()),
     }
 
@@ -101,6 +105,7 @@ def main() -> None:
                         help="sustained scalar Gflop/s per core (2 per cycle at 2.45 GHz: scalar code, FMA "
                              "counted as 2; AVX2 would be 8x that)")
     parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument("--margin", type=int, default=0, help="pixels added on every side (padded anchor renders)")
     args = parser.parse_args()
 
     from taichi_gs.export import final_poses
@@ -116,16 +121,19 @@ def main() -> None:
     splats = read_splats(args.run_dir / "deblur" / "splats.ply")
     gaussians = upload_splats(splats)
     rasterizer = Rasterizer(gaussians.dtype)
-    frames = np.linspace(0, len(poses) - 1, args.frames).round().astype(int)
+    frames = [int(i) for i in np.linspace(0, len(poses) - 1, args.frames).round()]
+    K = raster_intrinsics(intr.K())
+    K[:2, 2] += args.margin
+    width, height = intr.width + 2 * args.margin, intr.height + 2 * args.margin
     counts = []
     for i in frames:
-        view = rasterizer.forward(gaussians, Camera(raster_intrinsics(intr.K()), poses[i], intr.width, intr.height))
-        counts.append(count_render(view, intr.width, intr.height))
+        view = rasterizer.forward(gaussians, Camera(K, poses[i], width, height))
+        counts.append(count_render(view, width, height, args.margin))
     mean = {k: float(np.mean([c[k] for c in counts])) for k in counts[0]}
     fwd_ms = mean["forward_visits"] * args.flops_fwd / (args.cores * args.gflops * 1e9) * 1e3
     bwd_ms = mean["backward_evaluations"] * args.flops_bwd / (args.cores * args.gflops * 1e9) * 1e3
-    print(f"# {args.run_dir}: {len(splats.means)} Gaussians, frames {list(frames)} at {intr.width}x{intr.height}; "
-          "mean per render")
+    print(f"# {args.run_dir}: {len(splats.means)} Gaussians, frames {frames} at {width}x{height} (margin "
+          f"{args.margin}); mean per render")
     print("| count | per render |\n|---|---:|")
     for k, value in mean.items():
         print(f"| {k.replace('_', ' ')} | {value:,.0f} |")

@@ -3,14 +3,16 @@ top-level loop of a kernel) of rasterizer forward + backward passes on the synth
 float32 on the chosen backend.
 
     python bench/kernel_tasks.py [--arch cpu] [--combo 100000:256x192] [--passes 30] [--rounds 3] [--baseline ROOT]
-        [--run RUN_DIR]
+        [--run RUN_DIR] [--margin 14]
 
 Tasks are named ``kernel:task loop`` (Taichi's numbering of a kernel's top-level loops; the compile counter
 is dropped so that two code roots line up, as long as their loops are the same). A second table sums each
 kernel's loops. ``--baseline ROOT`` profiles another code root in alternating rounds (see ``ab.py``) and
 prints the ratio of this tree's median to the baseline's per task and per kernel. ``--run RUN_DIR`` profiles a
 finished ``taichi-gs reconstruct`` folder's trained scene instead (deblur/splats.ply at the input size, the passes
-cycling over the run's final poses; ``--combo`` is then ignored).
+cycling over the run's final poses; ``--combo`` is then ignored). ``--margin M`` renders M pixels more on every side
+with no image gradient there, as stage 3's padded anchor renders (14 px in the fast preset at the sample's size,
+where a warped view samples only part of it).
 """
 
 from __future__ import annotations
@@ -63,9 +65,11 @@ def run_scene(run_dir: Path) -> tuple[list[np.ndarray], np.ndarray, tuple[int, i
     return params, raster_intrinsics(intr.K()), (intr.width, intr.height), list(final_poses(run_dir, sequence))
 
 
-def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int, run_dir: Path | None = None) -> dict[str, float]:
+def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int, run_dir: Path | None = None,
+                  margin: int = 0) -> dict[str, float]:
     """{task: mean ms per forward + backward pass} over ``passes`` passes after three warm-up passes; the
-    camera turns a little between passes (with ``run_dir``: its trained scene at its poses, in turn)."""
+    camera turns a little between passes (with ``run_dir``: its trained scene at its poses, in turn); ``margin``
+    pixels more on every side, without image gradients."""
     import taichi as ti
     from taichi.lang import impl
 
@@ -81,10 +85,15 @@ def profile_tasks(arch: str, n: int, size: tuple[int, int], passes: int, run_dir
         poses = [se3_exp(np.array([0.01 * i, 0.0, 0.0, 0.0, 0.004 * i, 0.0])) for i in range(-2, 3)]
     else:
         params, K, (width, height), poses = run_scene(run_dir)
+    K = K.copy()
+    K[:2, 2] += margin
+    width, height = width + 2 * margin, height + 2 * margin
+    inside = np.zeros((height, width))
+    inside[margin:height - margin, margin:width - margin] = 1.0
     gs = DeviceGaussians.from_numpy(*params)
     rast = Rasterizer(ti.f32)
-    d_rgb = to_device(np.random.default_rng(1).normal(size=(height, width, 3)), ti.f32)
-    d_depth = to_device(np.random.default_rng(2).normal(size=(height, width)), ti.f32)
+    d_rgb = to_device(np.random.default_rng(1).normal(size=(height, width, 3)) * inside[..., None], ti.f32)
+    d_depth = to_device(np.random.default_rng(2).normal(size=(height, width)) * inside, ti.f32)
     cameras = [Camera(K, pose, width, height) for pose in poses]
     for i in range(passes + 3):
         if i == 3:
@@ -109,14 +118,15 @@ def main() -> None:
     parser.add_argument("--combo", default="100000:256x192", help="Gaussians:WxH")
     parser.add_argument("--passes", type=int, default=30)
     parser.add_argument("--run", type=Path, help="a finished reconstruct folder: profile its trained scene")
+    parser.add_argument("--margin", type=int, default=0, help="pixels added on every side, without gradients")
     add_arguments(parser)
     args = parser.parse_args()
     if args.json:
         n, (w, h) = parse_combo(args.combo)
-        print(json.dumps(profile_tasks(args.arch, n, (w, h), args.passes, args.run)))
+        print(json.dumps(profile_tasks(args.arch, n, (w, h), args.passes, args.run, args.margin)))
         return
     n, size = args.combo.split(":")
-    run_args = ["--run", str(args.run.resolve())] if args.run else []
+    run_args = (["--run", str(args.run.resolve())] if args.run else []) + ["--margin", str(args.margin)]
     rounds = alternate(__file__, ["--arch", args.arch, "--combo", args.combo, "--passes", str(args.passes), *run_args],
                        args.baseline, args.rounds)
 
@@ -126,6 +136,7 @@ def main() -> None:
     tasks = sorted({t for results in rounds.values() for r in results for t in r},
                    key=lambda t: -median("this tree", t))  # a loop of one tree alone shows 0 in the other
     scene_name = f"{args.run}'s trained scene at its poses" if args.run else f"{n} Gaussians at {size}"
+    scene_name += f", {args.margin} px margin without gradients" if args.margin else ""
     print(run_line(args.arch) + f", {scene_name}; mean ms per forward + backward pass (median over rounds)")
     header = "| task | this tree |" + (" baseline | ratio |" if args.baseline else "")
     print(header)

@@ -147,7 +147,6 @@ def make(dt) -> SimpleNamespace:
                 state[p + c] = 0.0
             state[p + F_LAST] = -1.0
         active = (box[2] - box[0] + 1) * (box[3] - box[1] + 1)
-        row_active = ti.Vector([box[2] - box[0] + 1 for _ in ti.static(range(TILE))])  # unfinished pixels per row
         start = tile_start[t]
         for j in range(start, tile_start[t + 1]):
             if active == 0:
@@ -160,8 +159,6 @@ def make(dt) -> SimpleNamespace:
             sg = screen_gaussian(entries, j)
             local = ti.cast(j - start, dt)
             for v in range(eb[1], eb[3] + 1):
-                if row_active[v - box[1]] == 0:  # every pixel of the row finished: nothing to blend
-                    continue
                 lo, hi = row_span(sg, cutoff, v, eb[0], eb[2])
                 for u in range(lo, hi + 1):
                     p = pixel_record(v, u, t, box, F_WIDTH)
@@ -175,7 +172,6 @@ def make(dt) -> SimpleNamespace:
                                 if next_trans < dt(MIN_TRANSMITTANCE):
                                     state[p + F_TRANS] = -trans
                                     active -= 1
-                                    row_active[v - box[1]] -= 1
                                 else:
                                     w = alpha * trans
                                     if ti.static(with_colour):
