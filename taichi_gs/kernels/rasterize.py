@@ -14,7 +14,9 @@ colour) — single writer per slot, no atomics. A pixel's image gradients (colou
 alpha g_A) are constant along its replay, so what lies behind Gaussian i enters dL/d a_i only through
 the scalar ``S_i = T_final (g_c . bg - g_A) + sum_{k > i} w_k (g_c . c_k + g_z z_k)``:
 ``dL/d a_i = T_i (g_c . c_i + g_z z_i) - S_i / (1 - a_i)``. The replay carries that one running sum
-per pixel instead of the colour and depth behind and the final transmittance.
+per pixel instead of the colour and depth behind and the final transmittance. A pixel whose image gradients
+are all zero (stage 3's padded anchor renders: the margin a warped view does not sample) would add exact zeros, so
+it is not replayed, nor is a row none of whose pixels reaches the entry.
 """
 
 import functools
