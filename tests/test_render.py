@@ -135,12 +135,30 @@ def check_forward_matches_reference(precision: str, seed: int = 3, n_sh: int = 9
     return max(np.abs(a - b).max() for a, b in zip((got.rgb, got.depth, got.alpha), want))
 
 
-def check_gradients(isotropic: bool, n_sh: int, seed: int, dense: int, sample: int = 0) -> dict[str, float]:
-    """Max relative error of every gradient against central differences (f64)."""
+def silence_pixels(loss: LossF64) -> None:
+    """Zero every image gradient of ``loss`` in a 6-pixel border (a padded anchor's margin) and in the upper half of
+    the dense tile at [16, 32)^2, and all but the depth gradient in rows 30-33 (pixels the backward must still
+    replay)."""
+    for w in (loss.w_rgb, loss.w_depth, loss.w_alpha):
+        w[:6] = 0.0
+        w[-6:] = 0.0
+        w[:, :6] = 0.0
+        w[:, -6:] = 0.0
+        w[16:24, 16:32] = 0.0
+    loss.w_rgb[30:34] = 0.0
+    loss.w_alpha[30:34] = 0.0
+
+
+def check_gradients(isotropic: bool, n_sh: int, seed: int, dense: int, sample: int = 0,
+                    silent: bool = False) -> dict[str, float]:
+    """Max relative error of every gradient against central differences (f64); with ``silent``, some pixels have no
+    image gradient (:func:`silence_pixels`)."""
     scene = make_scene(seed, n=16, n_sh=n_sh, dense=dense)
     if isotropic:
         scene[2] = scene[2][:, :1]
     loss = LossF64(scene, isotropic=isotropic)
+    if silent:
+        silence_pixels(loss)
     grads, pose_grad = loss.gradients(scene, POSE)
     tiles_per_gaussian = loss.rast.views[0].tiles_per_gaussian()
     assert tiles_per_gaussian.max() > 1, "some Gaussian should straddle a tile border"
@@ -198,6 +216,12 @@ def test_gradients_sh_degree_1() -> None:
 def test_gradients_sh_degree_0() -> None:
     """Stage 3's fast-preset path: anisotropic Gaussians with the DC colour only."""
     errors = check_gradients(isotropic=False, n_sh=1, seed=14, dense=20)
+    assert max(errors.values()) < 1e-5, errors
+
+
+def test_gradients_with_pixels_without_image_gradients() -> None:
+    """The backward skips pixels whose image gradients are all zero; a depth-only gradient is still replayed."""
+    errors = check_gradients(isotropic=False, n_sh=1, seed=14, dense=20, silent=True)
     assert max(errors.values()) < 1e-5, errors
 
 
