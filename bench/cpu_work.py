@@ -33,7 +33,14 @@ TILE = 16
 def spans(entries: np.ndarray, tile_of: np.ndarray, tiles_x: int, width: int, height: int) -> tuple[np.ndarray, ...]:
     """(entry index, row v, lo, hi) of every row of every entry's box inside its tile (``rasterize.row_span``,
     in float64; rows with no pixels have lo > hi)."""
-    from taichi_gs.kernels.project import P_CONIC_A, P_CONIC_B, P_CONIC_C, P_CUTOFF, P_MEAN_X, P_MEAN_Y
+    from taichi_gs.kernels.project import (
+        P_CONIC_A,
+        P_CONIC_B,
+        P_CONIC_C,
+        P_CUTOFF,
+        P_MEAN_X,
+        P_MEAN_Y,
+    )
     from taichi_gs.kernels.rasterize import E_BOX
 
     e = entries.astype(np.float64)
@@ -84,7 +91,7 @@ def count_render(view, width: int, height: int, margin: int = 0) -> dict:
     inside = (pix_v >= margin) & (pix_v < height - margin) & (pix_u >= margin) & (pix_u < width - margin)
     return {
         "entries": n_entries, "tiles": n_tiles, "pixels": width * height,
-        "rows": int(len(idx)), "forward_visits": int(length.sum()),
+        "rows": len(idx), "forward_visits": int(length.sum()),
         "backward_visits": int(length[replayed].sum()), "backward_evaluations": int(evaluated.sum()),
         "backward_evaluations_inside": int((evaluated & inside).sum()),
         "saturated_pixels": int((trans < 1e-2).sum()),
