@@ -95,3 +95,11 @@ def test_windows_that_cannot_be_made_are_refused(sharp_sequence, tmp_path, args,
     result = runner.invoke(app, ["import", str(sharp_sequence), "--out", str(tmp_path / "out"), *args])
     assert result.exit_code == 2, result.output
     assert message in " ".join(result.output.split())
+
+
+def test_each_window_keeps_its_centre_frames_depth_timestamp(sharp_sequence):
+    source = load_sequence(sharp_sequence)
+    source.depth_timestamps = source.timestamps + np.linspace(-0.01, 0.01, len(source))
+    averaged = AveragedSequence(source, WINDOW)
+    np.testing.assert_array_equal(averaged.depth_timestamps, source.depth_timestamps[averaged.centres])
+    np.testing.assert_allclose(averaged.depth_offsets(), source.depth_offsets()[averaged.centres])

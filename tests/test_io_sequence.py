@@ -101,6 +101,42 @@ def test_a_depth_latency_pairs_each_colour_frame_with_the_depth_frame_after_it(t
         [f"{i:06d}.png" for i in range(12)]
 
 
+def test_depth_timestamps_are_the_moment_each_paired_depth_frame_shows_and_survive_import(tmp_path):
+    """A TUM reading keeps each paired depth frame's stamp minus the latency; import writes it as frames.txt's 4th
+    column, the own layout reads it back, and picking frames keeps it with its frame."""
+    from taichi_gs.io.convert import import_sequence
+    from taichi_gs.io.load import subsample
+
+    folder = half_frame_folder(tmp_path / "tum")
+    seq = _open_tum_layout(folder, IntrinsicsOverride(), 0.02, depth_latency=0.015)
+    depth_stamps = np.array([float(line.split()[0]) for line in (folder / "depth.txt").read_text().splitlines()])
+    np.testing.assert_allclose(seq.depth_timestamps, depth_stamps[1:13] - 0.015)
+    np.testing.assert_allclose(seq.depth_offsets(), seq.depth_timestamps - seq.timestamps)
+    assert np.all(np.abs(seq.depth_offsets()) < 0.01)  # the next depth frame: 17.8 ms after, 2.8 ms once shifted
+
+    imported = load_sequence(import_sequence(seq, tmp_path / "own"))
+    np.testing.assert_allclose(imported.depth_offsets(), seq.depth_offsets(), atol=2e-6)
+    np.testing.assert_allclose(subsample(imported, 2, first=1).depth_offsets(), seq.depth_offsets()[1::2], atol=2e-6)
+
+
+def test_a_frame_list_without_depth_timestamps_pairs_depth_with_colour(own_layout):
+    seq = load_sequence(own_layout)
+    assert seq.depth_timestamps is None
+    np.testing.assert_array_equal(seq.depth_offsets(), np.zeros(len(seq)))
+
+
+@pytest.mark.parametrize("fourth, message", [(["1.0", None, "2.0"], "2 of 3 lines give a depth timestamp"),
+                                             (["1.0", "soon", "2.0"], "is not a number"),
+                                             (["1.0", "nan", "2.0"], "NaN or inf")])
+def test_a_bad_depth_timestamp_column_gives_a_one_line_error(own_layout, fourth, message):
+    lines = [line for line in (own_layout / "frames.txt").read_text().splitlines() if not line.startswith("#")]
+    (own_layout / "frames.txt").write_text("\n".join(
+        line if extra is None else f"{line} {extra}" for line, extra in zip(lines, fourth)) + "\n")
+    with pytest.raises(InputError, match=message) as error:
+        load_sequence(own_layout)
+    assert "frames.txt" in str(error.value) and "\n" not in str(error.value)
+
+
 def test_cli_flags_override_intrinsics(own_layout):
     seq = load_sequence(own_layout, IntrinsicsOverride(fx=99.0, depth_scale=2500.0))
     assert seq.intrinsics.fx == 99.0 and seq.intrinsics.fy == 50.0

@@ -62,7 +62,8 @@ class AveragedSequence(Sequence):
                          gt_poses=None if source.gt_poses is None else source.gt_poses[centres],
                          exposure_poses=self._exposures(source, centres, window),
                          sharp_paths=pick(source.sharp_paths) or pick(source.rgb_paths),
-                         names=pick(source.names), transform=source.transform, sourced_path=source.sourced_path)
+                         names=pick(source.names), transform=source.transform, sourced_path=source.sourced_path,
+                         depth_timestamps=None if source.depth_timestamps is None else source.depth_timestamps[centres])
         self.centres = centres
         self.source = {**source.source, "average": window}
         self.load_options = copy.copy(source.load_options)

@@ -1,10 +1,11 @@
 """``taichi-gs import``: any readable sequence written out in taichi-gs's own layout.
 
-Writes ``frames.txt``, ``rgb/NAME.png`` (8-bit), ``depth/NAME.png`` (uint16 at the sequence's depth
-scale), ``intrinsics.json`` (with the camera's rolling-shutter ``readout_ms`` where the reading gives or
-names one, e.g. ``--camera fr1``), and when the input has them ``groundtruth.txt``, ``exposure.txt``,
-``sharp/`` and ``sourced.png`` (the pixels that came from the camera, when some did not: an undistorted
-frame's border), each frame as the reader gives it (resampled, undistorted, masked, subsampled, scaled);
+Writes ``frames.txt`` (with each depth frame's own timestamp where the reading knows it), ``rgb/NAME.png``
+(8-bit), ``depth/NAME.png`` (uint16 at the sequence's depth scale), ``intrinsics.json`` (with the camera's
+rolling-shutter ``readout_ms`` where the reading gives or names one, e.g. ``--camera fr1``), and when the
+input has them ``groundtruth.txt``, ``exposure.txt``, ``sharp/`` and ``sourced.png`` (the pixels that came
+from the camera, when some did not: an undistorted frame's border), each frame as the reader gives it
+(resampled, undistorted, masked, subsampled, scaled);
 a sequence averaged into long exposures (``io.average``) also gets ``blur.json``.
 Everything goes to a temporary folder beside OUT, renamed onto OUT at the end; the input is only read.
 """
@@ -44,13 +45,15 @@ def import_sequence(sequence: Sequence, out: Path, progress: Callable[[int, int]
 
 def _write(sequence: Sequence, dest: Path, progress: Callable[[int, int], None] | None) -> None:
     intr = sequence.intrinsics
-    lines = ["# timestamp rgb depth"]
+    depth_times = sequence.depth_timestamps
+    lines = ["# timestamp rgb depth" + (" depth_timestamp" if depth_times is not None else "")]
     for i, (name, t) in enumerate(zip(sequence.names, sequence.timestamps)):
         write_png(dest / "rgb" / f"{name}.png", to_uint8(sequence.color(i)))
         write_png(dest / "depth" / f"{name}.png", encode_depth(sequence.depth(i), intr.depth_scale))
         if sequence.sharp_paths is not None:
             write_png(dest / "sharp" / f"{name}.png", to_uint8(sequence.sharp(i)))
-        lines.append(f"{t:.6f} rgb/{name}.png depth/{name}.png")
+        lines.append(f"{t:.6f} rgb/{name}.png depth/{name}.png"
+                     + (f" {depth_times[i]:.6f}" if depth_times is not None else ""))
         if progress is not None:
             progress(i + 1, len(sequence))
     write_text(dest / "frames.txt", "\n".join(lines) + "\n")

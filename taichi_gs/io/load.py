@@ -81,7 +81,8 @@ def subsample(sequence: Sequence, every: int, first: int = 0, count: int = 0) ->
         return sequence
     picked = slice(first, None if count == 0 else first + count * every, every)
     cut = copy.copy(sequence)
-    for attr in ("timestamps", "rgb_paths", "depth_paths", "names", "gt_poses", "exposure_poses", "sharp_paths"):
+    for attr in ("timestamps", "rgb_paths", "depth_paths", "names", "gt_poses", "exposure_poses", "sharp_paths",
+                 "depth_timestamps"):
         value = getattr(sequence, attr)
         setattr(cut, attr, None if value is None else value[picked])
     cut.source = {**sequence.source, "every": every, "first": first, "count": count}

@@ -64,10 +64,11 @@ class Sequence:
     Attributes: ``root``, ``layout`` (the reader's name, e.g. "tum" or "taichi-gs"), ``intrinsics``,
     ``timestamps`` (N,), ``rgb_paths``, ``depth_paths``, ``names`` (colour file stems), ``gt_poses`` (N x 4 x 4
     camera-to-world, NaN where ground truth does not cover a frame, or None), ``exposure_poses``
-    (N x 2 x 4 x 4 start/end, or None), ``sharp_paths`` (or None), ``sourced_path`` (the own layout's
-    ``sourced.png``, or None), ``transform`` (applied to each
-    frame as it is read: resampling, undistortion, masking; see ``io.transforms``), ``source``
-    (how it was read: format, every, scale, camera) and ``load_options`` (the arguments of
+    (N x 2 x 4 x 4 start/end, or None), ``depth_timestamps`` (N,) the moment each depth frame shows, on the
+    colour clock (None: with its colour frame; see :meth:`depth_offsets`), ``sharp_paths`` (or None),
+    ``sourced_path`` (the own layout's ``sourced.png``, or None), ``transform`` (applied to each frame as it is
+    read: resampling, undistortion, masking; see ``io.transforms``), ``source`` (how it was read: format, every,
+    scale, camera) and ``load_options`` (the arguments of
     :func:`io.load.load_sequence`, recorded in a run's run.json so later commands reopen it the same way).
     """
 
@@ -85,6 +86,7 @@ class Sequence:
         names: list[str] | None = None,
         transform: FrameTransform | None = None,
         sourced_path: Path | None = None,
+        depth_timestamps: np.ndarray | None = None,
     ):
         self.root = root
         self.layout = layout
@@ -98,6 +100,7 @@ class Sequence:
         self.sharp_paths = sharp_paths
         self.transform = transform
         self.sourced_path = sourced_path
+        self.depth_timestamps = depth_timestamps
         self.source: dict[str, object] = {"format": layout, "every": 1, "scale": 1.0}
         self.load_options: dict[str, Any] = {}
 
@@ -106,6 +109,13 @@ class Sequence:
 
     def K(self) -> np.ndarray:
         return self.intrinsics.K()
+
+    def depth_offsets(self) -> np.ndarray:
+        """(N,) seconds from each colour frame's timestamp to the moment its depth frame shows (0 where the
+        reading pairs them in time, or does not say)."""
+        if self.depth_timestamps is None:
+            return np.zeros(len(self))
+        return np.asarray(self.depth_timestamps, dtype=float) - np.asarray(self.timestamps, dtype=float)
 
     @profiling.timed("input frames (I/O)")
     def color(self, i: int) -> np.ndarray:

@@ -40,9 +40,10 @@ def read_text(path: Path) -> str:
         raise InputError(path, f"cannot read ({err.strerror})", "check the file's permissions") from None
 
 
-def read_list(path: Path, columns: int) -> list[list[str]]:
+def read_list(path: Path, columns: int, optional: int = 0) -> list[list[str]]:
     """The rows of a frame list ("timestamp file ..." per line; blank lines and # comments skipped), each cut to
-    ``columns`` fields; an error naming the line when one is short or its timestamp is not a number."""
+    ``columns`` fields and up to ``optional`` more; an error naming the line when one is short or its timestamp
+    is not a number."""
     rows = []
     for n, line in enumerate(read_text(path).splitlines(), start=1):
         line = line.strip()
@@ -58,7 +59,7 @@ def read_list(path: Path, columns: int) -> list[list[str]]:
             raise InputError(path, f"line {n}: timestamp {parts[0]!r} is not a number", "fix the timestamp") from None
         if not math.isfinite(stamp):
             raise InputError(path, f"line {n}: timestamp is NaN or inf", "fix the timestamp")
-        rows.append(parts[:columns])
+        rows.append(parts[:columns + optional])
     if not rows:
         raise InputError(path, "lists no frames", "add one line per frame")
     return rows

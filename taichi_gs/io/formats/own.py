@@ -4,7 +4,9 @@
                           depth from its own camera, registered as it is read (``io.registration``), and
                           "readout_ms" for a colour camera with a rolling shutter (``io.readout``;
                           ``Sequence.source["readout_ms"]``, what ``camera_readout`` takes)
-    SEQ/frames.txt        "timestamp rgb/NAME.png depth/NAME.png" per frame
+    SEQ/frames.txt        "timestamp rgb/NAME.png depth/NAME.png" per frame, optionally a 4th column: the moment
+                          the depth frame shows, on the colour clock (``Sequence.depth_timestamps``; ``import``
+                          writes it where the reading knows it, e.g. TUM's separate depth stream)
     SEQ/groundtruth.txt   optional TUM trajectory (camera-to-world), matched to frames by time
     SEQ/exposure.txt      optional "timestamp" + start and end pose (tx ty tz qx qy qz qw each)
     SEQ/sharp/NAME.png    optional sharp mid-exposure colour, same stem as the rgb file
@@ -41,11 +43,12 @@ def detect(root: Path) -> bool:
 
 def open_sequence(root: Path, options: ReadOptions) -> Sequence:
     list_path = root / "frames.txt"
-    rows = read_list(list_path, columns=3)
+    rows = read_list(list_path, columns=3, optional=1)
     timestamps = np.array([float(r[0]) for r in rows])
     check_increasing(list_path, timestamps)
     rgb_paths = [listed_file(root, r[1], list_path) for r in rows]
     depth_paths = [listed_file(root, r[2], list_path) for r in rows]
+    depth_timestamps = depth_times(list_path, rows)
     intrinsics = resolve_intrinsics(root, options.override, rgb_paths[0])
     sharp_dir = root / "sharp"
     sharp_paths = None
@@ -63,11 +66,30 @@ def open_sequence(root: Path, options: ReadOptions) -> Sequence:
         sharp_paths=sharp_paths, sourced_path=sourced if sourced.is_file() else None,
         transform=None if depth_camera is None else RegisterDepth(depth_camera, intrinsics.K(), intrinsics.width,
                                                                    intrinsics.height),
+        depth_timestamps=depth_timestamps,
     )
     readout_ms = readout_in(root / "intrinsics.json")
     if readout_ms is not None:
         sequence.source = {**sequence.source, READOUT_KEY: readout_ms}
     return sequence
+
+
+def depth_times(list_path: Path, rows: list[list[str]]) -> np.ndarray | None:
+    """The depth frames' own timestamps from the frame list's optional 4th column (on every line or on none)."""
+    stamps = [r[3] for r in rows if len(r) > 3]
+    if not stamps:
+        return None
+    if len(stamps) != len(rows):
+        raise InputError(list_path, f"{len(stamps)} of {len(rows)} lines give a depth timestamp (4th column)",
+                         "give it on every line or on none")
+    try:
+        values = np.array([float(v) for v in stamps])
+    except ValueError:
+        raise InputError(list_path, "a depth timestamp (4th column) is not a number",
+                         "fix or remove the column") from None
+    if not np.all(np.isfinite(values)):
+        raise InputError(list_path, "a depth timestamp (4th column) is NaN or inf", "fix or remove the column")
+    return values
 
 
 def read_exposure(path: Path, timestamps: np.ndarray) -> np.ndarray | None:

@@ -122,7 +122,8 @@ def _open_tum_layout(root: Path, override: IntrinsicsOverride, max_difference: f
     depth_paths = [listed_file(root, depth_rows[j][1], depth_list) for _, j in matches]
     intrinsics = resolve_intrinsics(root, override, rgb_paths[0])
     return Sequence(root, NAME, intrinsics, timestamps, rgb_paths, depth_paths,
-                    gt_poses=ground_truth(root / "groundtruth.txt", timestamps))
+                    gt_poses=ground_truth(root / "groundtruth.txt", timestamps),
+                    depth_timestamps=np.array([depth_times[j] for _, j in matches]))
 
 
 def associate(first: np.ndarray, second: np.ndarray, max_difference: float,

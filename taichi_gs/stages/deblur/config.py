@@ -83,6 +83,10 @@ class DeblurConfig:
     # from them (no rasterizer pass while only the exposure moves), rendering them again once one would move
     # more than this many pixels (0: render the anchors at every step, as training does)
     test_fit_refresh_px: float = setting(0.0, NON_NEGATIVE)
+    # [ours] weight of a depth term in the held-out fits: the masked depth L1 against the frame's depth of a render
+    # at the pose that depth shows (exposures.DepthMoments: mid-exposure's, moved by the frame's velocity times the
+    # depth's own time offset where the input gives one); 0: colour alone (the method's)
+    test_fit_lambda_depth: float = setting(0.0, NON_NEGATIVE)
     resolution_scale: int = setting(1, COUNT)  # train at 1/scale of the input resolution; outputs are full size
     seed: int = setting(0, ANY)
     checkpoint_every: int = setting(1000, COUNT)
@@ -185,10 +189,10 @@ PRESETS = {
                          densify_until=315, densify_every=70, max_gaussians=100_000, reset_opacity_every=0,
                          lr_exposure=2e-3, exposure_from=84, checkpoint_every=100, colour_affine=True,
                          fill_uncovered=True, epoch_sampling=True, adaptive_k=True, iterations_per_view=80,
-                         test_pose_iterations=40, test_fit="rprop", test_fit_refresh_px=1.0,
+                         test_pose_iterations=20, test_fit="rprop", test_fit_refresh_px=1.0,
                          test_fit_from_neighbours=True, spatial_order=True, early_views_fraction=0.3,
                          warp_views=True, odd_views=True, densify_headroom=1.3, keep_frame=True,
-                         initial_exposure_fraction=0.7, camera_readout=True),
+                         initial_exposure_fraction=0.7, camera_readout=True, test_fit_lambda_depth=1.0),
 }
 
 

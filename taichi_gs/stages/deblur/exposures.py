@@ -11,18 +11,26 @@ from ..row_adam import RowAdam
 from .config import DeblurConfig
 
 
-def initial_offsets(poses: np.ndarray, fraction: float) -> np.ndarray:
-    """(N, 2, 6) start/end offsets: -+ half of ``fraction`` of each frame's velocity twist (the
-    mean of the motions to its neighbours, in its own frame), so every exposure starts open."""
+def velocity_twists(poses: np.ndarray, timestamps: np.ndarray | None = None) -> np.ndarray:
+    """(N, 6) each frame's velocity twist: the mean of the motions to its neighbours, in its own frame, per frame
+    (``timestamps`` None) or per second."""
     n = len(poses)
-    offsets = np.zeros((n, 2, 6))
+    velocities = np.zeros((n, 6))
     for i in range(n):
-        ahead = se3_log(invert(poses[i]) @ poses[i + 1]) if i + 1 < n else None
-        behind = -se3_log(invert(poses[i]) @ poses[i - 1]) if i > 0 else None
-        steps = [s for s in (ahead, behind) if s is not None]
-        velocity = np.mean(steps, axis=0) if steps else np.zeros(6)
-        offsets[i] = [-0.5 * fraction * velocity, 0.5 * fraction * velocity]
-    return offsets
+        steps = []
+        for j, sign in ((i + 1, 1.0), (i - 1, -1.0)):
+            if 0 <= j < n:
+                per = 1.0 if timestamps is None else max(sign * (timestamps[j] - timestamps[i]), 1e-9)
+                steps.append(sign * se3_log(invert(poses[i]) @ poses[j]) / per)
+        velocities[i] = np.mean(steps, axis=0) if steps else 0.0
+    return velocities
+
+
+def initial_offsets(poses: np.ndarray, fraction: float) -> np.ndarray:
+    """(N, 2, 6) start/end offsets: -+ half of ``fraction`` of each frame's velocity twist per frame
+    (:func:`velocity_twists`), so every exposure starts open."""
+    velocity = velocity_twists(poses)
+    return np.stack([-0.5 * fraction * velocity, 0.5 * fraction * velocity], axis=1)
 
 
 def exposure_px(d_start: np.ndarray, d_end: np.ndarray, focal: float, depth: float) -> float:
@@ -58,6 +66,20 @@ def neighbours_mid_shift(offsets: np.ndarray, train: list[int], frame: int) -> n
     if not nearest:
         return np.zeros(6)
     return np.mean([0.5 * (offsets[j, 0] + offsets[j, 1]) for j in nearest], axis=0)
+
+
+class DepthMoments:
+    """[ours] When each frame's depth was taken, as a pose: the frames' ``velocities`` (N, 6; twists per second,
+    :func:`velocity_twists`) and their depth frames' time ``offsets`` (N,; seconds from the colour's timestamp,
+    ``Sequence.depth_offsets``)."""
+
+    def __init__(self, velocities: np.ndarray, offsets: np.ndarray):
+        self.velocities, self.offsets = velocities, offsets
+
+    def shift(self, frame: int) -> np.ndarray:
+        """The twist (6,) from ``frame``'s mid-exposure pose to the pose its depth shows: its velocity times its depth
+        offset (zero for depth taken with the colour)."""
+        return float(self.offsets[frame]) * self.velocities[frame]
 
 
 def colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, config: DeblurConfig) -> np.ndarray:

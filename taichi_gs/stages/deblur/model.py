@@ -100,6 +100,7 @@ def warped_views(k: int, anchors: int) -> int:
 
 ANCHOR_VIEWS = 1000  # rasterizer view buffers of the padded anchor renders (apart from the k full renders')
 FROZEN_VIEWS = 2000  # those of :class:`FrozenAnchors` (kept across steps, so apart from the others)
+DEPTH_INSTANT_VIEW = 3000  # the view buffer of :meth:`BlurScene.depth_instant_step`'s render
 
 
 class FrozenAnchors:
@@ -314,6 +315,22 @@ class BlurScene(OnStore):
         mass = host_copy.read(self.gaussians.grads["colors"], self.count)[:, 0].sum(axis=1) / (3 * SH_C0)
         self.gaussians.zero_grad()
         return mass
+
+    def depth_instant_step(self, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
+                           shift: np.ndarray, weight: float) -> tuple[float, np.ndarray, np.ndarray]:
+        """[ours] ``weight`` times the masked depth L1 against ``depth`` of a depth-and-alpha render at the pose the
+        frame's depth shows: its mid-exposure pose moved by the twist ``shift`` (``exposures.DepthMoments``), and
+        its gradients with respect to the exposure's start and end offsets: (loss, dL/d d_start, dL/d d_end). Its
+        Gaussian gradients are added to theirs (a held-out fit leaves them unused)."""
+        d_start, d_end = np.asarray(d_start) + shift, np.asarray(d_end) + shift  # their middle: the depth's pose
+        camera = self.camera(virtual_pose(base, d_start, d_end, 0.5))
+        view = self.rasterizer.forward(self.gaussians, camera, view=DEPTH_INSTANT_VIEW, with_colour=False)
+        host_copy.write(self.depth_target, depth)
+        self.grad_depth.fill(0.0)
+        loss = losses.masked_depth_l1(view.depth, self.depth_target, self.grad_depth, weight=weight)
+        g_pose = self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth)
+        g_start, g_end = exposure_pose_gradients(base, d_start, d_end, [0.5], [g_pose])
+        return weight * float(loss), g_start, g_end  # the kernel gives the unweighted mean
 
     def render(self, cam_to_world: np.ndarray, min_alpha: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
         """Sharp colour (H, W, 3) and depth (H, W) at one pose, as NumPy; the depth is the blended z

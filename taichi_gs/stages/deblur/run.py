@@ -37,7 +37,7 @@ from ..schedule import exp_decay, training_scale, views_for_span
 from .config import PRESETS, DeblurConfig, scaled_schedule, with_headroom
 from .density import density_schedule, fill_uncovered
 from .density_control import DensitySchedule, footprint_limit
-from .exposures import Exposures, colour_step, exposure_px, keep_open, shrink_mid
+from .exposures import DepthMoments, Exposures, colour_step, exposure_px, keep_open, shrink_mid, velocity_twists
 from .frames import (
     _Frames,
     _load_frames,
@@ -138,12 +138,13 @@ def run_deblur(
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
     frames, model = _phase(sequence, sourced, model, phase, config.resolution_scale)
+    depth_moments = DepthMoments(velocity_twists(poses, sequence.timestamps), sequence.depth_offsets())
     for frame in test:
         if config.test_fit_from_neighbours:
             exposures.start_from_neighbours(frame, train)
         exposures.offsets[frame], exposures.colours[frame] = _refine_test_exposure(
             model, frames, poses[frame], exposures.offsets[frame], exposures.start[frame], frame, config,
-            shutter.motions[frame])
+            shutter.motions[frame], depth_moments)
     warnings = _step_warnings(exposures.offsets, train, frames, config)
     splats, shift = model.splats(), None
     if config.keep_frame:
@@ -294,25 +295,32 @@ def _test_fit_steps(config: DeblurConfig) -> tuple[Callable[[np.ndarray, np.ndar
 
 @profiling.timed("test-view exposure fits")
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
-                          frame: int, config: DeblurConfig,
-                          readout_motion: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                          frame: int, config: DeblurConfig, readout_motion: np.ndarray | None = None,
+                          depth_moments: DepthMoments | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fit a held-out frame's exposure offsets (and, with ``colour_affine``, its colour transform),
     scene frozen, by re-blurring against its blurred input (``config.test_fit``: Adam or Rprop); a rolling
-    shutter's ``readout_motion`` as in :meth:`BlurScene.step`."""
+    shutter's ``readout_motion`` as in :meth:`BlurScene.step`. With ``test_fit_lambda_depth``, the frame's depth
+    pins the pose it shows (``depth_moments``; None: mid-exposure's)."""
     exposure_fit, colour_fit = _test_fit_steps(config)
     colour = IDENTITY.copy()
     frozen = None
     if config.warp_views and config.test_fit_refresh_px > 0:
         frozen = FrozenAnchors(config.test_fit_refresh_px, frames.K[0, 0], frames.median_depth[frame])
     guard = DivergenceGuard(f"stage 3 (deblur) test-view exposure of frame {frame}", np.zeros(3), np.inf)
+    shift = np.zeros(6) if depth_moments is None else depth_moments.shift(frame)
     for it in range(config.test_pose_iterations):
         k, anchors = _exposure_sampling(d, frames, frame, config)
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], k,
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
                           anchors=anchors, fallback_depth=frames.median_depth[frame], frozen=frozen,
                           readout_motion=readout_motion)
-        guard.check_step(it, sum(step.losses.values()), (step.grad_start, step.grad_end))
-        d = shrink_mid(exposure_fit(d, np.stack([step.grad_start, step.grad_end])), config.mid_exposure_decay)
+        loss, grad = sum(step.losses.values()), np.stack([step.grad_start, step.grad_end])
+        if config.test_fit_lambda_depth > 0:
+            depth_loss, g_start, g_end = model.depth_instant_step(frames.depths[frame], base, d[0], d[1], shift,
+                                                                  config.test_fit_lambda_depth)
+            loss, grad = loss + depth_loss, grad + np.stack([g_start, g_end])
+        guard.check_step(it, loss, grad)
+        d = shrink_mid(exposure_fit(d, grad), config.mid_exposure_decay)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
         if config.colour_affine:
             colour = colour_fit(colour, step.grad_colour)
