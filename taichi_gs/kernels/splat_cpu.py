@@ -1,7 +1,7 @@
 """The CPU path's fused render and backward kernels (one thread per tile; no shared memory, no block sync).
 
 :func:`cpu_kernels` builds, per float type: ``project_and_count`` (projection and per-Gaussian slot offsets),
-``bin_and_sort`` (slot emission, counting sort into tiles, per-tile depth sort, gather of tile-ordered records),
+``bin_and_sort`` (slot emission, counting sort into tiles, per-tile depth sort and gather of the tile's records),
 ``blend`` (front-to-back compositing) and ``backward`` (tile replay, per-Gaussian reduction and projection
 backward, pose sum into a pose row). :class:`~taichi_gs.kernels.splat.Rasterizer` launches them; on GPU
 backends it uses :mod:`~taichi_gs.kernels.raster_gpu` instead.
@@ -96,7 +96,7 @@ def cpu_kernels(dt) -> SimpleNamespace:
         slot_tile: ind(1),  # out (S,): the tile of each slot
         tile_cursor: ind(2),  # scratch (COUNT_RUNS, T)
         tile_start: ind(1),  # out (T + 1,): first sorted slot of each tile; tile_start[T] = S
-        keys: kind(1),  # scratch (S,): (depth, slot) keys (tiles.depth_slot_key), sorted within each tile
+        keys: kind(1),  # scratch (S,): (depth, Gaussian) keys (tiles.depth_id_key), sorted within each tile
         tmp_keys: kind(1),  # scratch (S,)
         order: ind(1),  # out (S,): slot index at each sorted position
         entries: fnd(2),  # out (S, E_WIDTH): the sorted slots' screen records and tile boxes
@@ -136,17 +136,20 @@ def cpu_kernels(dt) -> SimpleNamespace:
                     t = slot_tile[s]
                     pos = tile_cursor[c, t]
                     tile_cursor[c, t] = pos + 1
-                    keys[pos] = tiles.depth_slot_key(proj[slot_gid[s], project.P_DEPTH], s)
+                    g = slot_gid[s]
+                    keys[pos] = tiles.depth_id_key(proj[g, project.P_DEPTH], g)
+        # each tile's keys sorted, then its entries gathered while they are in cache: a key's low bits are its
+        # Gaussian, so the records are read without a dependent read of the slot's Gaussian first
         for i in range(n_tiles * spread):
             if i % spread == 0:
                 t = i // spread
+                tx, ty = t % tiles_x, t // tiles_x
                 tiles.sort_segment(keys, tmp_keys, tile_start[t], tile_start[t + 1])
-        for j in range(cap):
-            if j < live_slots(offsets, n, cap):
-                order[j] = tiles.key_slot(keys[j])
-        for j in range(cap):
-            if j < live_slots(offsets, n, cap):
-                blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
+                for j in range(tile_start[t], tile_start[t + 1]):
+                    g = tiles.key_id(keys[j])
+                    slot = tiles.tile_slot(rect, offsets, g, tx, ty)
+                    blend_f.copy_entry(j, g, proj, rect, entries)
+                    order[j] = slot
 
     @ti.kernel
     def blend(

@@ -4,7 +4,9 @@ Layout of the intersection ("slot") arrays:
 - slots are Gaussian-major: Gaussian g owns slots ``offsets[g] .. offsets[g + 1]`` (one per tile it
   touches); ``slot_gid[s]`` and ``slot_tile[s]`` say whose slot it is and for which tile;
 - the tile-major list ``order`` holds slot ids grouped by tile (tile t owns
-  ``tile_start[t] .. tile_start[t + 1]``), each group sorted front to back by (depth, slot).
+  ``tile_start[t] .. tile_start[t + 1]``), each group sorted front to back by (depth, slot); the CPU path
+  sorts a tile's (depth, Gaussian) keys, the same order (:func:`depth_id_key`), and finds each slot from its
+  Gaussian and tile (:func:`tile_slot`).
 The backward pass writes per-slot gradients, so a Gaussian's gradient is a contiguous segmented
 sum without atomics.
 """
@@ -14,7 +16,9 @@ import taichi as ti
 Array = ti.template()  # an ndarray argument of a ti.func (passed by reference)
 
 TILE = 16
-INSERTION_RUN = 16
+INSERTION_MAX = 32  # segments up to this long are insertion-sorted
+RADIX_BITS = 8  # the digit of a radix sort pass
+RADIX = 1 << RADIX_BITS
 
 
 def tile_grid(width: int, height: int) -> tuple[int, int]:
@@ -51,7 +55,7 @@ def emit_slots(g, rect: Array, offsets: Array, slot_gid: Array, slot_tile: Array
                 s += 1
 
 
-SLOT_BITS = 32  # a sort key's low bits: the slot id; the high bits: the float32 depth's bit pattern
+ID_BITS = 32  # a sort key's low bits: an id (a slot or a Gaussian); the high bits: the float32 depth's bit pattern
 
 
 @ti.func
@@ -62,10 +66,11 @@ def depth_bits(depth):
 
 
 @ti.func
-def depth_slot_key(depth, slot):
-    """A slot's 64-bit sort key: its :func:`depth_bits` above its slot id, so sorting the keys as integers
-    sorts by (float32 depth, slot)."""
-    return (ti.cast(depth_bits(depth), ti.i64) << SLOT_BITS) | ti.cast(slot, ti.i64)
+def depth_id_key(depth, id):
+    """A 64-bit sort key: :func:`depth_bits` above an id, so sorting the keys as integers sorts by (float32 depth,
+    id). Inside one tile a Gaussian's id orders as its slot does (slots are Gaussian-major), so (depth, Gaussian)
+    keys sort a tile as (depth, slot) keys would."""
+    return (ti.cast(depth_bits(depth), ti.i64) << ID_BITS) | ti.cast(id, ti.i64)
 
 
 @ti.func
@@ -76,53 +81,61 @@ def run_bounds(run, runs, n):
 
 
 @ti.func
-def key_slot(key):
-    """The slot id of a :func:`depth_slot_key`."""
-    return ti.cast(key & ti.i64((1 << SLOT_BITS) - 1), ti.i32)
+def key_id(key):
+    """The id of a :func:`depth_id_key`."""
+    return ti.cast(key & ti.i64((1 << ID_BITS) - 1), ti.i32)
 
 
 @ti.func
-def merge(src: Array, dst: Array, lo, mid, hi):
-    """Merge the sorted runs src[lo:mid] and src[mid:hi] into dst[lo:hi]."""
-    i, j = lo, mid
-    for out in range(lo, hi):
-        if j >= hi or (i < mid and src[i] <= src[j]):
-            dst[out] = src[i]
-            i += 1
-        else:
-            dst[out] = src[j]
-            j += 1
+def tile_slot(rect: Array, offsets: Array, g, tx, ty):
+    """The slot of Gaussian g for tile (tx, ty), one of those it touches (the order of :func:`emit_slots`)."""
+    b = tile_box(rect, g)
+    return offsets[g] + (ty - b[1]) * (b[2] - b[0] + 1) + (tx - b[0])
+
+
+@ti.func
+def insertion_sort(keys: Array, lo, hi):
+    """Sort keys[lo:hi] in place by insertion."""
+    for i in range(lo + 1, hi):
+        k = keys[i]
+        j = i - 1
+        while j >= lo and k < keys[j]:
+            keys[j + 1] = keys[j]
+            j -= 1
+        keys[j + 1] = k
 
 
 @ti.func
 def sort_segment(keys: Array, tmp: Array, lo, hi):
-    """Sort keys[lo:hi] (distinct integers): insertion-sorted runs, then bottom-up merges ping-ponging
-    through tmp."""
-    n = hi - lo
-    n_runs = (n + INSERTION_RUN - 1) // INSERTION_RUN
-    for r in range(n_runs):
-        a = lo + r * INSERTION_RUN
-        b = ti.min(a + INSERTION_RUN, hi)
-        for i in range(a + 1, b):
-            k = keys[i]
-            j = i - 1
-            while j >= a and k < keys[j]:
-                keys[j + 1] = keys[j]
-                j -= 1
-            keys[j + 1] = k
-    width = INSERTION_RUN
-    in_tmp = False
-    while width < n:
-        for r in range((n + 2 * width - 1) // (2 * width)):
-            a = lo + r * 2 * width
-            mid = ti.min(a + width, hi)
-            b = ti.min(a + 2 * width, hi)
-            if in_tmp:
-                merge(tmp, keys, a, mid, b)
-            else:
-                merge(keys, tmp, a, mid, b)
-        in_tmp = not in_tmp
-        width *= 2
-    if in_tmp:
-        for i in range(lo, hi):
-            keys[i] = tmp[i]
+    """Sort keys[lo:hi], distinct :func:`depth_id_key` keys whose ids increase from lo to hi (as the counting pass
+    places a tile's), into integer order: a stable LSD radix sort of the depth bits, RADIX_BITS a pass,
+    ping-ponging through tmp (a pass whose digit all keys share is skipped); short segments by insertion."""
+    if hi - lo <= INSERTION_MAX:
+        insertion_sort(keys, lo, hi)
+    else:
+        in_tmp = False
+        for p in ti.static(range(ID_BITS // RADIX_BITS)):
+            shift = ID_BITS + p * RADIX_BITS
+            count = ti.Vector.zero(ti.i32, RADIX)
+            for i in range(lo, hi):
+                key = tmp[i] if in_tmp else keys[i]
+                count[ti.cast(key >> shift, ti.i32) & (RADIX - 1)] += 1
+            first_digit = ti.cast((tmp[lo] if in_tmp else keys[lo]) >> shift, ti.i32) & (RADIX - 1)
+            if count[first_digit] < hi - lo:
+                running = lo
+                for d in range(RADIX):
+                    c = count[d]
+                    count[d] = running
+                    running += c
+                for i in range(lo, hi):
+                    key = tmp[i] if in_tmp else keys[i]
+                    d = ti.cast(key >> shift, ti.i32) & (RADIX - 1)
+                    if in_tmp:
+                        keys[count[d]] = key
+                    else:
+                        tmp[count[d]] = key
+                    count[d] += 1
+                in_tmp = not in_tmp
+        if in_tmp:
+            for i in range(lo, hi):
+                keys[i] = tmp[i]
