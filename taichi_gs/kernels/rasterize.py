@@ -77,21 +77,17 @@ def make(dt) -> SimpleNamespace:
         return (t * TILE * TILE + (v - box[1]) * TILE + (u - box[0])) * columns
 
     @ti.func
-    def copy_entry(j, g, proj: Array, rect: Array, entries: Array):
-        """Copy Gaussian g's screen record and pixel box into entry j (all reads before the first write: a write
-        between reads makes the compiler reload each array's address and shape)."""
+    def gather_entry(j, order: Array, slot_gid: Array, proj: Array, rect: Array,
+                     entries: Array):
+        """Copy the screen record and pixel box of the Gaussian behind sorted entry j (all reads before
+        the first write: a write between reads makes the compiler reload each array's address and shape)."""
+        g = slot_gid[order[j]]
         record = ti.Vector([proj[g, c] for c in ti.static(range(P_WIDTH))], dt=dt)
         box = ti.Vector([rect[g, c] for c in ti.static(range(4))])
         for c in ti.static(range(P_WIDTH)):
             entries[j, c] = record[c]
         for c in ti.static(range(4)):
             entries[j, E_BOX + c] = ti.cast(box[c], dt)
-
-    @ti.func
-    def gather_entry(j, order: Array, slot_gid: Array, proj: Array, rect: Array,
-                     entries: Array):
-        """Copy the screen record and pixel box of the Gaussian behind sorted entry j (see :func:`copy_entry`)."""
-        copy_entry(j, slot_gid[order[j]], proj, rect, entries)
 
     @ti.func
     def screen_gaussian(entries: Array, j):
@@ -291,5 +287,5 @@ def make(dt) -> SimpleNamespace:
                 slot_grad[slot, c] = acc[c]
 
     return SimpleNamespace(
-        gather_entry=gather_entry, copy_entry=copy_entry, blend_tile_forward=blend_tile_forward, blend_tile_backward=blend_tile_backward
+        gather_entry=gather_entry, blend_tile_forward=blend_tile_forward, blend_tile_backward=blend_tile_backward
     )

@@ -1,7 +1,7 @@
 """The CPU path's fused render and backward kernels (one thread per tile; no shared memory, no block sync).
 
 :func:`cpu_kernels` builds, per float type: ``project_and_count`` (projection and per-Gaussian slot offsets),
-``bin_and_sort`` (slot emission, counting sort into tiles, per-tile depth sort and gather of the tile's records),
+``bin_and_sort`` (slot emission, counting sort into tiles, per-tile depth sort, gather of tile-ordered records),
 ``blend`` (front-to-back compositing) and ``backward`` (tile replay, per-Gaussian reduction and projection
 backward, pose sum into a pose row). :class:`~taichi_gs.kernels.splat.Rasterizer` launches them; on GPU
 backends it uses :mod:`~taichi_gs.kernels.raster_gpu` instead.
@@ -96,7 +96,7 @@ def cpu_kernels(dt) -> SimpleNamespace:
         slot_tile: ind(1),  # out (S,): the tile of each slot
         tile_cursor: ind(2),  # scratch (COUNT_RUNS, T)
         tile_start: ind(1),  # out (T + 1,): first sorted slot of each tile; tile_start[T] = S
-        keys: kind(1),  # scratch (S,): (depth, Gaussian) keys (tiles.depth_id_key), sorted within each tile
+        keys: kind(1),  # scratch (S,): (depth, slot) keys (tiles.depth_slot_key), sorted within each tile
         tmp_keys: kind(1),  # scratch (S,)
         order: ind(1),  # out (S,): slot index at each sorted position
         entries: fnd(2),  # out (S, E_WIDTH): the sorted slots' screen records and tile boxes
@@ -108,7 +108,8 @@ def cpu_kernels(dt) -> SimpleNamespace:
         # row of tile_cursor (no atomics: two threads' atomic counters on a few hundred tiles cost more than the
         # whole pass; docs/notebook/benchmarks-2026-11.md, "The render's sort without atomics"), one thread turns the
         # counts into each run's first position per tile, then the runs place their slots' (depth, slot) keys side
-        # by side; each tile's keys are then sorted as integers
+        # by side, in slot order within each tile; each tile's keys are then sorted as integers (a radix sort of their
+        # depth bits that keeps that order between equal depths: tiles.sort_segment)
         for i in range(COUNT_RUNS * spread):
             if i % spread == 0:
                 c = i // spread
@@ -136,20 +137,17 @@ def cpu_kernels(dt) -> SimpleNamespace:
                     t = slot_tile[s]
                     pos = tile_cursor[c, t]
                     tile_cursor[c, t] = pos + 1
-                    g = slot_gid[s]
-                    keys[pos] = tiles.depth_id_key(proj[g, project.P_DEPTH], g)
-        # each tile's keys sorted, then its entries gathered while they are in cache: a key's low bits are its
-        # Gaussian, so the records are read without a dependent read of the slot's Gaussian first
+                    keys[pos] = tiles.depth_slot_key(proj[slot_gid[s], project.P_DEPTH], s)
         for i in range(n_tiles * spread):
             if i % spread == 0:
                 t = i // spread
-                tx, ty = t % tiles_x, t // tiles_x
                 tiles.sort_segment(keys, tmp_keys, tile_start[t], tile_start[t + 1])
-                for j in range(tile_start[t], tile_start[t + 1]):
-                    g = tiles.key_id(keys[j])
-                    slot = tiles.tile_slot(rect, offsets, g, tx, ty)
-                    blend_f.copy_entry(j, g, proj, rect, entries)
-                    order[j] = slot
+        for j in range(cap):
+            if j < live_slots(offsets, n, cap):
+                order[j] = tiles.key_slot(keys[j])
+        for j in range(cap):
+            if j < live_slots(offsets, n, cap):
+                blend_f.gather_entry(j, order, slot_gid, proj, rect, entries)
 
     @ti.kernel
     def blend(

@@ -4,9 +4,7 @@ Layout of the intersection ("slot") arrays:
 - slots are Gaussian-major: Gaussian g owns slots ``offsets[g] .. offsets[g + 1]`` (one per tile it
   touches); ``slot_gid[s]`` and ``slot_tile[s]`` say whose slot it is and for which tile;
 - the tile-major list ``order`` holds slot ids grouped by tile (tile t owns
-  ``tile_start[t] .. tile_start[t + 1]``), each group sorted front to back by (depth, slot); the CPU path
-  sorts a tile's (depth, Gaussian) keys, the same order (:func:`depth_id_key`), and finds each slot from its
-  Gaussian and tile (:func:`tile_slot`).
+  ``tile_start[t] .. tile_start[t + 1]``), each group sorted front to back by (depth, slot).
 The backward pass writes per-slot gradients, so a Gaussian's gradient is a contiguous segmented
 sum without atomics.
 """
@@ -55,7 +53,7 @@ def emit_slots(g, rect: Array, offsets: Array, slot_gid: Array, slot_tile: Array
                 s += 1
 
 
-ID_BITS = 32  # a sort key's low bits: an id (a slot or a Gaussian); the high bits: the float32 depth's bit pattern
+SLOT_BITS = 32  # a sort key's low bits: the slot id; the high bits: the float32 depth's bit pattern
 
 
 @ti.func
@@ -66,11 +64,10 @@ def depth_bits(depth):
 
 
 @ti.func
-def depth_id_key(depth, id):
-    """A 64-bit sort key: :func:`depth_bits` above an id, so sorting the keys as integers sorts by (float32 depth,
-    id). Inside one tile a Gaussian's id orders as its slot does (slots are Gaussian-major), so (depth, Gaussian)
-    keys sort a tile as (depth, slot) keys would."""
-    return (ti.cast(depth_bits(depth), ti.i64) << ID_BITS) | ti.cast(id, ti.i64)
+def depth_slot_key(depth, slot):
+    """A slot's 64-bit sort key: its :func:`depth_bits` above its slot id, so sorting the keys as integers
+    sorts by (float32 depth, slot)."""
+    return (ti.cast(depth_bits(depth), ti.i64) << SLOT_BITS) | ti.cast(slot, ti.i64)
 
 
 @ti.func
@@ -81,16 +78,9 @@ def run_bounds(run, runs, n):
 
 
 @ti.func
-def key_id(key):
-    """The id of a :func:`depth_id_key`."""
-    return ti.cast(key & ti.i64((1 << ID_BITS) - 1), ti.i32)
-
-
-@ti.func
-def tile_slot(rect: Array, offsets: Array, g, tx, ty):
-    """The slot of Gaussian g for tile (tx, ty), one of those it touches (the order of :func:`emit_slots`)."""
-    b = tile_box(rect, g)
-    return offsets[g] + (ty - b[1]) * (b[2] - b[0] + 1) + (tx - b[0])
+def key_slot(key):
+    """The slot id of a :func:`depth_slot_key`."""
+    return ti.cast(key & ti.i64((1 << SLOT_BITS) - 1), ti.i32)
 
 
 @ti.func
@@ -107,15 +97,16 @@ def insertion_sort(keys: Array, lo, hi):
 
 @ti.func
 def sort_segment(keys: Array, tmp: Array, lo, hi):
-    """Sort keys[lo:hi], distinct :func:`depth_id_key` keys whose ids increase from lo to hi (as the counting pass
-    places a tile's), into integer order: a stable LSD radix sort of the depth bits, RADIX_BITS a pass,
-    ping-ponging through tmp (a pass whose digit all keys share is skipped); short segments by insertion."""
+    """Sort keys[lo:hi], distinct :func:`depth_slot_key` keys whose slots increase from lo to hi (as the counting
+    pass places a tile's), into integer order: a stable LSD radix sort of the 32 depth bits alone (RADIX_BITS a
+    pass, ping-ponging through tmp; a pass whose digit all keys share is skipped), so equal depths keep their slot
+    order; short segments by insertion."""
     if hi - lo <= INSERTION_MAX:
         insertion_sort(keys, lo, hi)
     else:
         in_tmp = False
-        for p in ti.static(range(ID_BITS // RADIX_BITS)):
-            shift = ID_BITS + p * RADIX_BITS
+        for p in ti.static(range(32 // RADIX_BITS)):  # the depth bits above the slot's
+            shift = SLOT_BITS + p * RADIX_BITS
             count = ti.Vector.zero(ti.i32, RADIX)
             for i in range(lo, hi):
                 key = tmp[i] if in_tmp else keys[i]
