@@ -11,7 +11,8 @@ from .. import profiling
 from . import runtime
 
 SLOTS = 5  # parameter tensors per launch; a step over fewer fills the rest with an empty placeholder
-CPU_CHUNK_ROWS = 256  # rows a loop index updates in order on the CPU (a loop index per row costs a call per row)
+CPU_CHUNK_ROWS = 64  # rows a loop index updates in order on the CPU (a loop index per row costs a call per row;
+# 256 measured slower on four threads: docs/notebook/launch-budget.md)
 
 
 @functools.cache
