@@ -108,7 +108,8 @@ def cpu_kernels(dt) -> SimpleNamespace:
         # row of tile_cursor (no atomics: two threads' atomic counters on a few hundred tiles cost more than the
         # whole pass; docs/notebook/benchmarks-2026-11.md, "The render's sort without atomics"), one thread turns the
         # counts into each run's first position per tile, then the runs place their slots' (depth, slot) keys side
-        # by side; each tile's keys are then sorted as integers
+        # by side, in slot order within each tile; each tile's keys are then sorted as integers (a radix sort of their
+        # depth bits that keeps that order between equal depths: tiles.sort_segment)
         for i in range(COUNT_RUNS * spread):
             if i % spread == 0:
                 c = i // spread

@@ -14,7 +14,9 @@ import taichi as ti
 Array = ti.template()  # an ndarray argument of a ti.func (passed by reference)
 
 TILE = 16
-INSERTION_RUN = 16
+INSERTION_MAX = 32  # segments up to this long are insertion-sorted
+RADIX_BITS = 8  # the digit of a radix sort pass
+RADIX = 1 << RADIX_BITS
 
 
 def tile_grid(width: int, height: int) -> tuple[int, int]:
@@ -82,47 +84,49 @@ def key_slot(key):
 
 
 @ti.func
-def merge(src: Array, dst: Array, lo, mid, hi):
-    """Merge the sorted runs src[lo:mid] and src[mid:hi] into dst[lo:hi]."""
-    i, j = lo, mid
-    for out in range(lo, hi):
-        if j >= hi or (i < mid and src[i] <= src[j]):
-            dst[out] = src[i]
-            i += 1
-        else:
-            dst[out] = src[j]
-            j += 1
+def insertion_sort(keys: Array, lo, hi):
+    """Sort keys[lo:hi] in place by insertion."""
+    for i in range(lo + 1, hi):
+        k = keys[i]
+        j = i - 1
+        while j >= lo and k < keys[j]:
+            keys[j + 1] = keys[j]
+            j -= 1
+        keys[j + 1] = k
 
 
 @ti.func
 def sort_segment(keys: Array, tmp: Array, lo, hi):
-    """Sort keys[lo:hi] (distinct integers): insertion-sorted runs, then bottom-up merges ping-ponging
-    through tmp."""
-    n = hi - lo
-    n_runs = (n + INSERTION_RUN - 1) // INSERTION_RUN
-    for r in range(n_runs):
-        a = lo + r * INSERTION_RUN
-        b = ti.min(a + INSERTION_RUN, hi)
-        for i in range(a + 1, b):
-            k = keys[i]
-            j = i - 1
-            while j >= a and k < keys[j]:
-                keys[j + 1] = keys[j]
-                j -= 1
-            keys[j + 1] = k
-    width = INSERTION_RUN
-    in_tmp = False
-    while width < n:
-        for r in range((n + 2 * width - 1) // (2 * width)):
-            a = lo + r * 2 * width
-            mid = ti.min(a + width, hi)
-            b = ti.min(a + 2 * width, hi)
-            if in_tmp:
-                merge(tmp, keys, a, mid, b)
-            else:
-                merge(keys, tmp, a, mid, b)
-        in_tmp = not in_tmp
-        width *= 2
-    if in_tmp:
-        for i in range(lo, hi):
-            keys[i] = tmp[i]
+    """Sort keys[lo:hi], distinct :func:`depth_slot_key` keys whose slots increase from lo to hi (as the counting
+    pass places a tile's), into integer order: a stable LSD radix sort of the 32 depth bits alone (RADIX_BITS a
+    pass, ping-ponging through tmp; a pass whose digit all keys share is skipped), so equal depths keep their slot
+    order; short segments by insertion."""
+    if hi - lo <= INSERTION_MAX:
+        insertion_sort(keys, lo, hi)
+    else:
+        in_tmp = False
+        for p in ti.static(range(32 // RADIX_BITS)):  # the depth bits above the slot's
+            shift = SLOT_BITS + p * RADIX_BITS
+            count = ti.Vector.zero(ti.i32, RADIX)
+            for i in range(lo, hi):
+                key = tmp[i] if in_tmp else keys[i]
+                count[ti.cast(key >> shift, ti.i32) & (RADIX - 1)] += 1
+            first_digit = ti.cast((tmp[lo] if in_tmp else keys[lo]) >> shift, ti.i32) & (RADIX - 1)
+            if count[first_digit] < hi - lo:
+                running = lo
+                for d in range(RADIX):
+                    c = count[d]
+                    count[d] = running
+                    running += c
+                for i in range(lo, hi):
+                    key = tmp[i] if in_tmp else keys[i]
+                    d = ti.cast(key >> shift, ti.i32) & (RADIX - 1)
+                    if in_tmp:
+                        keys[count[d]] = key
+                    else:
+                        tmp[count[d]] = key
+                    count[d] += 1
+                in_tmp = not in_tmp
+        if in_tmp:
+            for i in range(lo, hi):
+                keys[i] = tmp[i]
