@@ -472,9 +472,9 @@ def view(
     from .viewer.app import serve
 
     viewer = serve(out, host, port, state.arch)
-    console.print(f"viewer of {out} at {viewer.url} (Ctrl-C to stop)", highlight=False, soft_wrap=True)
-    typer.echo(viewer.url)
-    try:
+    try:  # from here on a Ctrl-C stops the server's threads, which would otherwise keep the process alive
+        console.print(f"viewer of {out} at {viewer.url} (Ctrl-C to stop)", highlight=False, soft_wrap=True)
+        typer.echo(viewer.url)
         while True:
             time.sleep(1.0)
     except KeyboardInterrupt:
