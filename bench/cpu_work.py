@@ -27,7 +27,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-TILE = 16
+from kernel_tasks import run_scene
+
+from taichi_gs.kernels.tiles import TILE
 
 
 def spans(entries: np.ndarray, tile_of: np.ndarray, tiles_x: int, width: int, height: int) -> tuple[np.ndarray, ...]:
@@ -115,23 +117,17 @@ def main() -> None:
     parser.add_argument("--margin", type=int, default=0, help="pixels added on every side (padded anchor renders)")
     args = parser.parse_args()
 
-    from taichi_gs.export import final_poses
-    from taichi_gs.io.load import load_sequence
-    from taichi_gs.io.ply import read_splats
     from taichi_gs.kernels import runtime
-    from taichi_gs.render import Camera, Rasterizer, raster_intrinsics, upload_splats
+    from taichi_gs.render import Camera, DeviceGaussians, Rasterizer
 
     runtime.init("cpu")
-    sequence = load_sequence(Path(sequence_root(args.run_dir)))
-    intr = sequence.intrinsics
-    poses = final_poses(args.run_dir, sequence)
-    splats = read_splats(args.run_dir / "deblur" / "splats.ply")
-    gaussians = upload_splats(splats)
+    params, K, (width, height), poses = run_scene(args.run_dir)
+    gaussians = DeviceGaussians.from_numpy(*params)
     rasterizer = Rasterizer(gaussians.dtype)
     frames = [int(i) for i in np.linspace(0, len(poses) - 1, args.frames).round()]
-    K = raster_intrinsics(intr.K())
+    K = K.copy()
     K[:2, 2] += args.margin
-    width, height = intr.width + 2 * args.margin, intr.height + 2 * args.margin
+    width, height = width + 2 * args.margin, height + 2 * args.margin
     counts = []
     for i in frames:
         view = rasterizer.forward(gaussians, Camera(K, poses[i], width, height))
@@ -139,7 +135,7 @@ def main() -> None:
     mean = {k: float(np.mean([c[k] for c in counts])) for k in counts[0]}
     fwd_ms = mean["forward_visits"] * args.flops_fwd / (args.cores * args.gflops * 1e9) * 1e3
     bwd_ms = mean["backward_evaluations"] * args.flops_bwd / (args.cores * args.gflops * 1e9) * 1e3
-    print(f"# {args.run_dir}: {len(splats.means)} Gaussians, frames {frames} at {width}x{height} (margin "
+    print(f"# {args.run_dir}: {len(params[0])} Gaussians, frames {frames} at {width}x{height} (margin "
           f"{args.margin}); mean per render")
     print("| count | per render |\n|---|---:|")
     for k, value in mean.items():
@@ -148,13 +144,6 @@ def main() -> None:
           f"{mean['backward_evaluations'] / 1e6:.2f} M evaluations x {args.flops_bwd:.0f} flops, at "
           f"{args.gflops} Gflop/s x {args.cores} cores: forward blend {fwd_ms:.1f} ms, backward replay "
           f"{bwd_ms:.1f} ms wall")
-
-
-def sequence_root(run_dir: Path) -> str:
-    """The input folder a run was made from (its run.json)."""
-    import json
-
-    return json.loads((run_dir / "run.json").read_text())["sequence"]
 
 
 if __name__ == "__main__":

@@ -54,11 +54,11 @@ def init_with_profiler(arch: str, profiler: bool = True):
 def run_scene(run_dir: Path) -> tuple[list[np.ndarray], np.ndarray, tuple[int, int], list[np.ndarray]]:
     """(Gaussian parameters, K, (width, height), camera-to-world poses) of a finished run's trained scene."""
     from taichi_gs.export import final_poses
-    from taichi_gs.io.load import load_sequence
     from taichi_gs.io.ply import read_splats
+    from taichi_gs.pipeline import open_run_sequence
     from taichi_gs.render import raster_intrinsics
 
-    sequence = load_sequence(json.loads((run_dir / "run.json").read_text())["sequence"])
+    sequence = open_run_sequence(run_dir)  # with the options the run loaded it with (--first, --count, --scale ...)
     intr = sequence.intrinsics
     s = read_splats(run_dir / "deblur" / "splats.ply")
     params = [s.means, s.quats, s.log_scales, s.opacity_logits, s.sh]
