@@ -163,9 +163,11 @@ def format_metrics(metrics: dict[str, Any]) -> str:
                      f"{_number(t.get('rotation_scale'), 1, 3):>9s} {t['frames']:>7d}  {dropped}")
     images = metrics.get("images")
     if images:
+        as_read = [("as read PSNR", "as_read_psnr_db", 1, 2), ("as read SSIM", "as_read_ssim", 1, 3)] \
+            if "as_read_psnr_db" in images.get("test", images.get("train", {})) else []
         lines += _split_table(f"images (stage 3 renders vs {images['ground_truth']})", images, [
             ("PSNR dB", "psnr_db", 1, 2), ("SSIM", "ssim", 1, 3), ("input PSNR", "blurred_input_psnr_db", 1, 2),
-            ("input SSIM", "blurred_input_ssim", 1, 3), ("inv-depth RMSE", "inverse_depth_rmse", 1, 4)])
+            ("input SSIM", "blurred_input_ssim", 1, 3), *as_read, ("inv-depth RMSE", "inverse_depth_rmse", 1, 4)])
     if not images or images["ground_truth"] != SHARP_TRUTH:  # with sharp ground truth, its scores say more
         lines += _no_reference_lines(metrics.get("no_reference"))
     if metrics.get("stages"):
@@ -229,7 +231,9 @@ def _versions() -> dict[str, str]:
 def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
     """PSNR/SSIM of stage 3's sharp renders against the sharp ground truth (with the blurred input's
     own scores as the floor) and inverse-depth RMSE of its depth renders against the input depth,
-    per split (test views are held out of training); None before stage 3 has run.
+    per split (test views are held out of training); None before stage 3 has run. Where stage 3 modelled a
+    rolling shutter, ``as_read_psnr_db`` / ``as_read_ssim`` also score its sharp renders as that shutter reads
+    them (deblur/renders/as_read/: each row at the pose it was read from), as a real camera took the truth.
 
     LPIPS needs network weights that cannot be fetched here, so it is reported as unavailable.
     Writes RUN_DIR/report/test_views.png (input | deblurred | sharp ground truth, where there is one | depth)."""
@@ -252,11 +256,16 @@ def image_metrics(run_dir: Path, sequence: Sequence) -> dict[str, Any] | None:
             in_grid = group == "test" and len(grid_rows) < GRID_VIEWS
             blurred = sequence.color(i) if has_sharp or in_grid else None
             sharps = [sequence.sharp(i)] if has_sharp else []
+            as_read_path = deblur / "renders" / "as_read" / f"{stem}.png"
+            as_read = read_color(as_read_path) if has_sharp and as_read_path.is_file() else None
             for sharp in sharps:
                 for name, value in (("psnr_db", psnr(render, sharp)), ("ssim", ssim(render, sharp)),
                                     ("blurred_input_psnr_db", psnr(blurred, sharp)),
                                     ("blurred_input_ssim", ssim(blurred, sharp))):
                     scores.setdefault(name, []).append(value)
+                if as_read is not None:  # [ours] the sharp render read along the rows as the camera read the truth
+                    scores.setdefault("as_read_psnr_db", []).append(psnr(as_read, sharp))
+                    scores.setdefault("as_read_ssim", []).append(ssim(as_read, sharp))
             if in_grid:
                 grid_rows.append([blurred, render, *sharps, depth])
                 grid_titles.append(stem)

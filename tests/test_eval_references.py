@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import imageio.v3 as imageio
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -103,4 +105,25 @@ def test_eval_with_ground_truth_scores_everything(bare, tmp_path):
     assert all(t["frames"] == 6 and t["ate_m"] < 0.05 for t in metrics["trajectory"].values())
     assert printed.startswith("trajectory (after rigid alignment)") and "not scored" not in printed
     assert metrics["not_scored"] == [] and metrics["no_reference"]["test"]["true_exposure_px"] > 0
+    assert "as_read_psnr_db" not in metrics["images"]["test"]  # a global shutter: no renders/as_read/
     assert (run / "report" / "position_error.png").is_file() and (run / "report" / "trajectory_top.png").is_file()
+
+
+def test_eval_scores_the_renders_as_a_rolling_shutter_reads_them_where_stage_3_wrote_them(bare, tmp_path):
+    """A run whose stage 3 modelled a rolling shutter has renders/as_read/: eval scores them beside the sharp renders
+    (here they are the sharp renders, except one held-out view halfway to its truth, so they score higher)."""
+    local = tmp_path / "source"
+    shutil.copytree(bare["run"], local)
+    renders = local / "deblur" / "renders"
+    shutil.copytree(renders / "sharp", renders / "as_read")
+    names = [line.split()[1].split("/", 1)[1].rsplit(".", 1)[0]
+             for line in (bare["full"] / "frames.txt").read_text().splitlines() if line and line[0] != "#"]
+    name = names[json.loads((local / "deblur" / "split.json").read_text())["test"][0]]
+    render = imageio.imread(renders / "sharp" / f"{name}.png").astype(np.float64)
+    truth = imageio.imread(bare["full"] / "sharp" / f"{name}.png").astype(np.float64)
+    imageio.imwrite(renders / "as_read" / f"{name}.png", np.rint(0.5 * (render + truth)).astype(np.uint8))
+    printed, metrics, _ = _eval(local, tmp_path, "--gt", str(bare["full"]))
+    assert "as read PSNR" in printed and f"{metrics['images']['test']['as_read_psnr_db']:.2f}" in printed
+    test, train = metrics["images"]["test"], metrics["images"]["train"]
+    assert test["as_read_psnr_db"] > test["psnr_db"] and test["as_read_ssim"] > test["ssim"]
+    assert train["as_read_psnr_db"] == train["psnr_db"] and train["as_read_ssim"] == train["ssim"]
