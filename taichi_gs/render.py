@@ -72,13 +72,13 @@ from .geometry import raster_intrinsics
 from .kernels import affine, blur, density_stats, host_copy, losses, runtime, warp
 from .kernels.optim import Adam
 from .kernels.splat import POSE_COLUMNS, Camera, DeviceGaussians, Rasterizer, View, float_type, to_device
-from .kernels.step_values import StepValues
+from .kernels.step_values import Slot, StepValues
 from .splats import Splats
 
 __all__ = [
     "Camera", "DeviceGaussians", "Rasterizer", "View", "RenderGrads", "RenderResult", "rasterize",
     "to_device", "losses", "blur", "affine", "density_stats",
-    "Adam", "render_views", "upload_splats", "warp", "host_copy", "StepValues", "POSE_COLUMNS",
+    "Adam", "render_views", "upload_splats", "warp", "host_copy", "StepValues", "Slot", "POSE_COLUMNS",
 ]
 
 

@@ -9,7 +9,7 @@ import numpy as np
 from ... import profiling
 from ...gaussian_store import GaussianStore, OnStore, morton_order
 from ...geometry import raster_intrinsics
-from ...render import POSE_COLUMNS, Camera, Rasterizer, StepValues, host_copy, losses, to_device
+from ...render import POSE_COLUMNS, Camera, Rasterizer, Slot, StepValues, host_copy, losses, to_device
 from ...splats import logit
 
 FIXED_SCALE = ("means", "opacity_logits")
@@ -51,7 +51,7 @@ class DepthRefiner(OnStore):
         self.step_values = StepValues(self.gaussians.dtype)  # a step's loss values and pose rows, read once
 
     def _depth_backward(self, target_depth: np.ndarray, cam_to_world: np.ndarray, weight: float,
-                        coverage_weight: float, row: int, pose_into) -> None:
+                        coverage_weight: float, row: int, pose_into: Slot) -> None:
         """Render one camera (deferred), add its weighted loss gradients to the Gaussians, leave dL/dpose at
         ``pose_into`` and the depth and coverage terms in :attr:`step_values` (named by ``row``)."""
         view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height),
