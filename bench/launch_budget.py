@@ -51,7 +51,7 @@ CASES = ("render", "stage 3 paper", "stage 3 fast", "stage 2")
 def case(name: str, n: int, width: int, height: int) -> Callable[[], object]:
     """One call of case ``name`` (see the module) on ``n`` random Gaussians at ``width`` x ``height``; the
     blurred frame a fixed random image, its depth a plane (the counts do not depend on either)."""
-    from taichi_gs.render import Camera, DeviceGaussians, Rasterizer, to_device
+    from taichi_gs.render import POSE_COLUMNS, Camera, DeviceGaussians, Rasterizer, StepValues, to_device
     from taichi_gs.splats import Splats
     from taichi_gs.stages.deblur.model import BlurScene, Rates
     from taichi_gs.stages.refine.model import DepthRefiner
@@ -67,8 +67,9 @@ def case(name: str, n: int, width: int, height: int) -> Callable[[], object]:
         camera = Camera(K, base, width, height)
         d_rgb = to_device(rng.normal(size=(height, width, 3)), gaussians.dtype)
         d_depth = to_device(rng.normal(size=(height, width)), gaussians.dtype)
+        pose = StepValues(gaussians.dtype).rows("pose", 1, POSE_COLUMNS)  # left on the device, not read
         return lambda: rasterizer.backward(gaussians, rasterizer.forward(gaussians, camera, deferred=True), d_rgb,
-                                           d_depth, pose_row=0)
+                                           d_depth, pose_into=pose)
     if name == "stage 3 paper":
         sh3 = np.concatenate([colors, np.zeros((n, 15, 3))], axis=1)
         paper = BlurScene(Splats(means, quats, log_scales, logits, sh3), K, width, height)

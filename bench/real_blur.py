@@ -1,8 +1,8 @@
 """Real extreme blur with a sharp reference (issue 84): taichi-gs on sequences made by ``taichi-gs import --average W``
 (W consecutive real frames averaged in linear light; the centre frame is the sharp reference, its depth and pose).
 
-    python bench/real_blur.py SEQ [SEQ ...] --out DIR [--arm "NAME=FILE.toml" ...] [--no-paper] [--json OUT]
-        [--peers "O3D hybrid,O3D ICP"]
+    python bench/real_blur.py SEQ [SEQ ...] --out DIR [--count N] [--arm "NAME=FILE.toml" ...] [--no-paper]
+        [--json OUT] [--peers "O3D hybrid,O3D ICP"]
 
 Per sequence folder (never written):
 - ours: ``taichi-gs reconstruct SEQ`` (the default ``fast`` preset) in DIR/NAME/ours, then ``taichi-gs eval --json``;
@@ -10,7 +10,8 @@ Per sequence folder (never written):
   ``--no-paper`` leaves it out);
 - each ``--arm NAME=FILE.toml``: stage 3 alone (``taichi-gs deblur --config FILE``) on a copy of ours' stage-1 and
   stage-2 folders, in DIR/NAME/ARM (its seconds are ours' stages 1-2 plus its own stage 3).
-Finished runs are read back (a killed benchmark resumes). With ``--peers``, ``bench/pose.py --sequence`` scores
+``--count N`` runs each sequence's first N frames (``reconstruct --count N``; the issue's tables use 40). Finished runs
+are read back (a killed benchmark resumes). With ``--peers``, ``bench/pose.py --sequence`` scores
 those stage-1 peers on the same folders (its own table, printed after ours).
 
 Prints one Markdown table, a row per sequence and method: W, size, frames, the median streak of the exposures
@@ -61,11 +62,12 @@ def _evaluate(run: Path) -> dict[str, Any]:
     return json.loads(metrics.read_text())
 
 
-def reconstruct(sequence: Path, run: Path, preset: str) -> dict[str, Any]:
-    """A whole run with ``preset`` (resumed where it stopped), evaluated."""
+def reconstruct(sequence: Path, run: Path, preset: str, count: int | None = None) -> dict[str, Any]:
+    """A whole run with ``preset`` on the first ``count`` frames (all: None), resumed where it stopped, evaluated."""
     run.parent.mkdir(parents=True, exist_ok=True)
     if not (run / "deblur" / "done.json").is_file():
-        _run(["reconstruct", str(sequence), "--out", str(run), "--preset", preset, "--quiet"],
+        _run(["reconstruct", str(sequence), "--out", str(run), "--preset", preset, "--quiet",
+              *(["--count", str(count)] if count else [])],
              run.parent / f"{run.name}.log")
     return _evaluate(run)
 
@@ -127,21 +129,23 @@ def registration(sequence: Path, run: Path) -> dict[str, float | None]:
             "shift_px": float(np.mean(shifts))}
 
 
-def sequence_facts(sequence: Path) -> dict[str, Any]:
-    """W, image size, frame count and median streak (pixels) of an averaged sequence folder."""
+def sequence_facts(sequence: Path, count: int | None = None) -> dict[str, Any]:
+    """W, image size, frame count and median streak (pixels) of an averaged sequence folder's first ``count`` frames
+    (all: None)."""
     intrinsics = json.loads((sequence / "intrinsics.json").read_text())
-    frames = [line for line in (sequence / "frames.txt").read_text().splitlines() if line and line[0] != "#"]
+    frames = [line for line in (sequence / "frames.txt").read_text().splitlines() if line and line[0] != "#"][:count]
     blur_path = sequence / "blur.json"
     blur = json.loads(blur_path.read_text()) if blur_path.is_file() else {}
-    streaks = sorted(f["median_px"] for f in blur.get("frames", []) if f.get("median_px") is not None)
+    streaks = sorted(f["median_px"] for f in blur.get("frames", [])[:count] if f.get("median_px") is not None)
     return {"window": blur.get("window"), "size": f"{intrinsics['width']}x{intrinsics['height']}",
             "frames": len(frames), "streak_px": streaks[len(streaks) // 2] if streaks else None}
 
 
-def row(sequence: Path, run: Path, method: str, metrics: dict[str, Any], seconds: float) -> dict[str, Any]:
-    """One table row from a run's metrics."""
+def row(sequence: Path, run: Path, method: str, metrics: dict[str, Any], seconds: float,
+        count: int | None = None) -> dict[str, Any]:
+    """One table row from a run's metrics (a run of the sequence's first ``count`` frames; all: None)."""
     trajectory, test = metrics.get("trajectory") or {}, (metrics.get("images") or {}).get("test") or {}
-    facts = sequence_facts(sequence)
+    facts = sequence_facts(sequence, count)
     final = next((trajectory[s] for s in ("deblur", "refine", "pose") if s in trajectory), {})
     return {"sequence": sequence.name, "method": method, **facts,
             "stage1_ate_mm": _mm((trajectory.get("pose") or {}).get("ate_m")), "final_ate_mm": _mm(final.get("ate_m")),
@@ -184,6 +188,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("sequences", type=Path, nargs="+", help="folders made by taichi-gs import --average W")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--count", type=int, default=None, help="run each sequence's first N frames")
     parser.add_argument("--arm", action="append", default=[], help="NAME=FILE.toml: stage 3 with this config")
     parser.add_argument("--no-paper", action="store_true", help="leave out the paper preset (hours on a CPU)")
     parser.add_argument("--json", type=Path, default=None, help="write the rows here")
@@ -197,17 +202,17 @@ def main() -> None:
         if not (sequence / "frames.txt").is_file():
             sys.exit(f"{sequence}: not a sequence folder (no frames.txt); make one with taichi-gs import --average W")
         folder = args.out / sequence.name
-        ours = reconstruct(sequence, folder / "ours", "fast")
+        ours = reconstruct(sequence, folder / "ours", "fast", args.count)
         runs = [("ours", folder / "ours", ours, stage_seconds(ours, (*STAGE_1_2, "deblur")))]
         for name, config in arms:
             metrics = arm(folder / "ours", folder / name, Path(config))
             runs.append((name, folder / name, metrics,
                          stage_seconds(ours, STAGE_1_2) + stage_seconds(metrics, ("deblur",))))
         if not args.no_paper:
-            paper = reconstruct(sequence, folder / "paper", "paper")
+            paper = reconstruct(sequence, folder / "paper", "paper", args.count)
             runs.append(("paper", folder / "paper", paper, stage_seconds(paper, (*STAGE_1_2, "deblur"))))
         for name, run, metrics, seconds in runs:
-            rows.append(row(sequence, run, name, metrics, seconds))
+            rows.append(row(sequence, run, name, metrics, seconds, args.count))
             grids.append(run / "report" / "test_views.png")
         print(table(rows[-len(runs):]), flush=True)
     print("\n" + table(rows))

@@ -5,17 +5,19 @@ Two ways in:
 * :func:`rasterize` — NumPy in, NumPy out, for tests, tools and one-off renders. Returns a
   :class:`RenderResult` whose ``backward(d_rgb, d_depth, d_alpha)`` gives :class:`RenderGrads`.
 * The device-resident API for training loops (parameters, gradients, images and optimiser state
-  stay in Taichi ndarrays; only the 6-vector pose gradient and loss values come back):
+  stay in Taichi ndarrays; what comes back, pose gradients and loss values, comes in one read per step):
   :class:`DeviceGaussians` (``params`` / ``grads`` dicts of ndarrays), :class:`Rasterizer`
   (``forward(gaussians, camera, view=i) -> View`` with ``.rgb`` (H, W, 3), ``.depth``,
   ``.transmittance`` (= 1 - alpha) ndarrays; ``backward(gaussians, view, d_rgb=, d_depth=,
   d_alpha=) -> np.ndarray (6,)`` pose gradient, parameter gradients ADDED to ``gaussians.grads``; a
-  training step renders ``deferred=True`` and passes ``pose_row=j``, then reads the k pose gradients,
-  and whether any view overflowed its slot buffers, in one ``pose_gradients(k)``),
-  ``losses`` (value returned, ``weight * gradient`` added into a given ndarray), ``blur`` (k-view
-  average and its gradient), ``affine`` (a frame's affine colour transform and its gradient),
-  ``density_stats`` (each Gaussian's positional gradient in pixels, for densification), ``warp`` ([ours]
-  a view near an anchor's pose sampled from the anchor's render through its depth), ``Adam``,
+  training step renders ``deferred=True`` and passes ``pose_into=`` a row of its :class:`StepValues`),
+  ``StepValues`` (what a step's kernels leave for the host, in named slots, read in one go: the pose
+  rows, then ``Rasterizer.pose_gradients(rows)``: None when a view overflowed its slot buffers),
+  ``losses`` (value returned, ``weight * gradient`` added into a given ndarray, or the value left in a
+  slot, ``into=``), ``blur`` (k-view average and its gradient), ``affine`` (a frame's affine colour
+  transform and its gradient), ``density_stats`` (each Gaussian's positional gradient in pixels summed on
+  the device, for densification), ``warp`` ([ours] a view near an anchor's pose sampled from the anchor's
+  render through its depth), ``Adam``,
   ``to_device`` (upload targets) and ``host_copy`` (``read`` / ``write`` between NumPy and an ndarray
   without a copy kernel on the CPU backend), all re-exported here.
 
@@ -44,9 +46,10 @@ Stage 3 (k virtual views of one blurred frame)::
     losses.l1(blurred, frame, g_blur, weight=1 - lam); losses.dssim(blurred, frame, g_blur, weight=lam)
     blur.spread(g_blur, k, g_view)                          # dL/d(each view) = dL/dblur / k
     gs.zero_grad()
+    rows = values.rows("poses", k, POSE_COLUMNS)            # values: the step's StepValues, cleared
     for j, v in enumerate(views):
-        rast.backward(gs, v, d_rgb=g_view, pose_row=j)        # the pose gradient stays on the device
-    pose_grads = rast.pose_gradients(k)                     # one read; None: a view overflowed, run again
+        rast.backward(gs, v, d_rgb=g_view, pose_into=rows.row(j))   # the pose gradient stays on the device
+    pose_grads = rast.pose_gradients(values.read()["poses"])  # one read; None: a view overflowed, run again
     g_s, g_e = exposure_pose_gradients(T, d_s, d_e, taus, pose_grads)   # from geometry.py
     adam.step()
 
@@ -68,13 +71,14 @@ import numpy as np
 from .geometry import raster_intrinsics
 from .kernels import affine, blur, density_stats, host_copy, losses, runtime, warp
 from .kernels.optim import Adam
-from .kernels.splat import Camera, DeviceGaussians, Rasterizer, View, float_type, to_device
+from .kernels.splat import POSE_COLUMNS, Camera, DeviceGaussians, Rasterizer, View, float_type, to_device
+from .kernels.step_values import Slot, StepValues
 from .splats import Splats
 
 __all__ = [
     "Camera", "DeviceGaussians", "Rasterizer", "View", "RenderGrads", "RenderResult", "rasterize",
     "to_device", "losses", "blur", "affine", "density_stats",
-    "Adam", "render_views", "upload_splats", "warp", "host_copy",
+    "Adam", "render_views", "upload_splats", "warp", "host_copy", "StepValues", "Slot", "POSE_COLUMNS",
 ]
 
 

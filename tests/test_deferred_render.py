@@ -1,7 +1,7 @@
 """Deferred renders (issue 87): a training step reads no slot count per view; a view whose tile slots do not fit
-its buffers renders nothing and flags it in its backward's pose row, which the step's one ``pose_gradients``
-read finds, and the step run again matches a run that never overflowed. Pose gradients left in device rows come
-back in one read and equal the checked backward's. Runs on the backend ``TAICHI_GS_ARCH`` picks (CPU by
+its buffers renders nothing and flags it in its backward's pose row, which ``pose_gradients`` finds in the
+step's one read, and the step run again matches a run that never overflowed. Pose gradients left in device rows
+come back in one read and equal the checked backward's. Runs on the backend ``TAICHI_GS_ARCH`` picks (CPU by
 default)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from taichi_gs.kernels import host_copy, launch_budget
-from taichi_gs.render import Camera, DeviceGaussians, Rasterizer, to_device
+from taichi_gs.render import POSE_COLUMNS, Camera, DeviceGaussians, Rasterizer, StepValues, to_device
 from taichi_gs.splats import Splats
 from taichi_gs.stages.deblur.model import BlurScene, Rates
 
@@ -33,9 +33,11 @@ def _render(rasterizer: Rasterizer, gaussians: DeviceGaussians, cameras: list[Ca
     gaussians.zero_grad()
     views = [rasterizer.forward(gaussians, camera, view=j, deferred=deferred) for j, camera in enumerate(cameras)]
     if deferred:
+        values = StepValues(gaussians.dtype)
+        rows = values.rows("poses", len(views), POSE_COLUMNS)
         for j, view in enumerate(views):
-            assert rasterizer.backward(gaussians, view, d_rgb=d_rgb, pose_row=j) is None
-        poses = rasterizer.pose_gradients(len(views))
+            assert rasterizer.backward(gaussians, view, d_rgb=d_rgb, pose_into=rows.row(j)) is None
+        poses = rasterizer.pose_gradients(values.read()["poses"])
         overflowed = poses is None
     else:
         overflowed, poses = False, np.stack([rasterizer.backward(gaussians, v, d_rgb=d_rgb) for v in views])
@@ -65,9 +67,9 @@ def test_a_deferred_overflow_is_found_once_per_step_and_the_rerun_matches():
         overflowed, images, _, _ = _render(deferred, gaussians, cameras, d_rgb, deferred=True)
     assert overflowed and deferred.slot_capacity >= slots
     assert all(not image.any() for image in images)  # an overflowed view renders nothing (black background)
-    rasterizer_reads = {site: count for site, count in budget.by_site("read").items()
-                        if "splat.py" in site and "dictcomp" not in site}  # not download()'s
-    assert rasterizer_reads == {"host_copy.read @ kernels/splat.py:pose_gradients": 1}
+    rasterizer_reads = {site: count for site, count in budget.by_site("read").items()  # not download()'s:
+                        if ("splat.py" in site or "step_values.py" in site) and "dictcomp" not in site}
+    assert rasterizer_reads == {"host_copy.read @ kernels/step_values.py:read": 1}
     overflowed, images, poses, grads = _render(deferred, gaussians, cameras, d_rgb, deferred=True)
     assert not overflowed
     for got, want in zip(images, want_images):
@@ -87,8 +89,9 @@ def test_a_checked_forward_that_overflows_renders_again_with_its_exact_count():
     view = rasterizer.forward(gaussians, camera)
     np.testing.assert_array_equal(host_copy.read(view.rgb), want)
     assert view.n_slots == view.slot_count() > 8 and rasterizer.slot_capacity >= view.n_slots
-    rasterizer.backward(gaussians, view, pose_row=0)
-    assert rasterizer.pose_gradients(1) is not None  # the checked forward acted on its own overflow
+    values = StepValues(gaussians.dtype)
+    rasterizer.backward(gaussians, view, pose_into=values.rows("pose", 1, POSE_COLUMNS))
+    assert rasterizer.pose_gradients(values.read()["pose"]) is not None  # the checked forward acted on its overflow
 
 
 def _step(scene: BlurScene, k: int) -> tuple:
@@ -118,4 +121,4 @@ def test_a_training_step_reruns_after_an_overflow_and_reads_as_much_for_any_k():
         with launch_budget.counting() as budget:
             _step(scene, k)
         reads[k] = budget.host_reads - 5  # scene.arrays(): one read per parameter
-    assert reads[3] == reads[5]
+    assert reads[3] == reads[5] == 1

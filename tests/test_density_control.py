@@ -273,6 +273,37 @@ def test_observe_adds_each_gaussians_gradient_in_pixels_and_skips_the_unseen():
     assert model.density.grad_sum[2] == sums[2]
 
 
+def test_device_statistics_equal_the_host_accumulation_of_each_steps_values():
+    """observe() sums on the device what the host summed before (each step's values read, added in float64);
+    a host read in between (as densification and checkpoints do), changed in place, goes back first."""
+    from taichi_gs.render import density_stats
+
+    model = _model()
+    rng = np.random.default_rng(5)
+    sums, counts = model.density.grad_sum.copy(), model.density.grad_count.copy()
+    for step in range(6):
+        grads = rng.normal(size=(model.count, 3)).astype(np.float32)
+        grads[step % model.count] = 0.0  # unseen this step
+        model.gaussians.grads["means"].from_numpy(grads)
+        pose = np.eye(4)
+        pose[:3, 3] = rng.normal(scale=0.2, size=3)
+        params, g = model.gaussians.params, model.gaussians.grads
+        pixels = density_stats.image_plane_gradient(params["means"], g["means"], model.count, pose, K[0, 0])
+        seen = pixels >= 0
+        sums[seen] += pixels[seen]
+        counts[seen] += 1
+        model.density.observe(model.store, pose, K[0, 0])
+        if step == 2:  # read mid-way, changed in place: the device continues from the changed values
+            np.testing.assert_array_equal(model.density.grad_sum, sums)
+            model.density.grad_sum[1] += 0.25
+            sums[1] += 0.25
+    np.testing.assert_array_equal(model.density.grad_sum, sums)
+    np.testing.assert_array_equal(model.density.grad_count, counts)
+    state = model.state()
+    np.testing.assert_array_equal(state["grad_sum"], sums)
+    np.testing.assert_array_equal(state["grad_count"], counts)
+
+
 def test_the_lightest_gaussians_up_to_a_share_of_the_weight_are_dropped():
     weights = np.array([5.0, 0.1, 3.0, 0.2, 0.0, 1.7])  # total 10: sorted 0.0, 0.1, 0.2, 1.7, 3.0, 5.0
     np.testing.assert_array_equal(heavier_than_share(weights, 0.0), [1, 1, 1, 1, 0, 1])  # weightless rows only

@@ -10,7 +10,8 @@ import numpy as np
 import taichi as ti
 
 from .. import profiling
-from . import host_copy, row_spans, runtime, scan
+from . import row_spans, runtime, scan
+from .step_values import Slot, StepValues
 
 N_GRAD_M = 12  # dL/dM, row-major, accumulated per row span
 
@@ -37,7 +38,8 @@ def _kernels(dt) -> SimpleNamespace:
 
     @ti.kernel
     def backward_kernel(image: img, M: mat34, grad_out: img, grad_image: img,
-                        parts: ti.types.ndarray(dtype=dt, ndim=2), rows: ti.types.ndarray(dtype=dt, ndim=2)):
+                        parts: ti.types.ndarray(dtype=dt, ndim=2), out: ti.types.ndarray(dtype=dt, ndim=1),
+                        at: ti.i32):
         h, w = image.shape[0], image.shape[1]
         for i in range(row_spans.span_count(h, w, span) * spread):
             if i % spread == 0:
@@ -54,9 +56,15 @@ def _kernels(dt) -> SimpleNamespace:
                             acc[4 * c + j] += grad_out[v, u, c] * image[v, u, j]
                         acc[4 * c + 3] += grad_out[v, u, c]
                 for q in ti.static(range(N_GRAD_M)):
-                    parts[i // spread, q] = acc[q]
-        if ti.static(span > 0):  # on the GPU, fold each row's spans (on the CPU a span is a row)
-            row_spans.sum_rows(parts, rows, h, w, span, N_GRAD_M)
+                    if ti.static(span > 0):
+                        parts[i // spread, q] = acc[q]
+                    else:  # on the CPU a span is a row: its sums are the row's
+                        out[at + v * N_GRAD_M + q] = acc[q]
+        if ti.static(span > 0):  # on the GPU, fold each row's spans
+            n = row_spans.per_row(w, span)
+            for v in range(h):
+                for q in ti.static(range(N_GRAD_M)):
+                    out[at + v * N_GRAD_M + q] = row_spans.row_sum(parts, v, n, q)
 
     return SimpleNamespace(forward=forward_kernel, backward=backward_kernel)
 
@@ -77,18 +85,36 @@ def forward(image: ti.Ndarray, M: np.ndarray, out: ti.Ndarray) -> ti.Ndarray:
 
 
 @profiling.timed("colour transform (device)")
-def backward(image: ti.Ndarray, M: np.ndarray, grad_out: ti.Ndarray, grad_image: ti.Ndarray) -> np.ndarray:
+def backward(image: ti.Ndarray, M: np.ndarray, grad_out: ti.Ndarray, grad_image: ti.Ndarray,
+             into: Slot | None = None) -> np.ndarray | None:
     """Given dL/d out of :func:`forward`, overwrite ``grad_image`` with dL/d image and return
-    dL/dM (3 x 4, each image row's sum added up in float64)."""
+    dL/dM (3 x 4, each image row's sum added up in float64). ``into`` (a slot of H rows of N_GRAD_M values of a
+    step's values): leave the rows' sums there and return None; :func:`matrix_gradient` of the rows read is then
+    the return value."""
     _check(image, grad_out)
     _check(image, grad_image)
-    height = image.shape[0]
-    n_spans = height * row_spans.spans_per_row(image.shape[1])
-    parts = _scratch.get(f"affine spans {image.dtype}", n_spans, image.dtype, (N_GRAD_M,))
-    rows = _scratch.get(f"affine rows {image.dtype}", height, image.dtype, (N_GRAD_M,))
-    _kernels(image.dtype).backward(image, _matrix(M, image.dtype), grad_out, grad_image, parts, rows)
-    by_row = rows if n_spans > height else parts  # one span per row: the partials are the rows' sums
-    return host_copy.read(by_row, height).astype(np.float64).sum(axis=0).reshape(3, 4)
+    height, dtype = image.shape[0], image.dtype
+    own = _own_values(dtype)
+    slot = into or own.rows("affine rows", height, N_GRAD_M)
+    if slot.size != height * N_GRAD_M:
+        raise ValueError(f"a slot of {slot.size} values for {height} rows of the colour transform's gradient")
+    parts = _scratch.get(f"affine spans {dtype}", height * row_spans.spans_per_row(image.shape[1]), dtype,
+                         (N_GRAD_M,))
+    _kernels(dtype).backward(image, _matrix(M, dtype), grad_out, grad_image, parts, slot.values, slot.at)
+    if into is not None:
+        return None
+    return matrix_gradient(own.read()["affine rows"])
+
+
+def matrix_gradient(rows: np.ndarray) -> np.ndarray:
+    """dL/dM (3 x 4) from the rows a :func:`backward` left ((H, N_GRAD_M)), summed in float64."""
+    return np.asarray(rows, np.float64).sum(axis=0).reshape(3, 4)
+
+
+@functools.cache
+def _own_values(dtype) -> StepValues:
+    """Where a :func:`backward` without ``into`` leaves its rows before they are read."""
+    return StepValues(dtype)
 
 
 def _check(image: ti.Ndarray, other: ti.Ndarray) -> None:

@@ -2,8 +2,9 @@
 
 Each function ADDS ``weight * dL/d(input)`` into the given gradient ndarray, so several terms can share one
 gradient buffer before a backward pass, and returns the loss value (a Python float: one host read), or with
-``into`` (a :class:`Slot` of a :class:`LossValues`) leaves it on the device, where a training step's values
-wait for one read per step.
+``into`` (a :class:`~taichi_gs.kernels.step_values.Slot` of a training step's
+:class:`~taichi_gs.kernels.step_values.StepValues`) leaves it on the device, where the step's values wait
+for one read per step.
 - :func:`l1`: mean over pixels and channels of ``|pred - target|`` (H, W, C).
   The image losses take an optional :class:`PixelWeights` mask: the mean is then over its pixels
   (e.g. only pixels the camera saw, not the unsourced border of an undistorted frame).
@@ -30,8 +31,9 @@ import numpy as np
 import taichi as ti
 
 from .. import profiling
-from . import host_copy, row_spans, runtime
+from . import row_spans, runtime
 from .splat import to_device
+from .step_values import Slot, StepValues
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -398,49 +400,22 @@ def _weights_for(pred: ti.Ndarray, mask: PixelWeights | None) -> PixelWeights:
     return mask
 
 
-@dataclass(frozen=True)
-class Slot:
-    """Where a loss kernel leaves its value(s) on the device: ``values[at]`` (and ``values[at + 1]`` for two)."""
-
-    values: ti.Ndarray
-    at: int
-
-
-class LossValues:
-    """A training step's loss values on the device, in named slots (:meth:`at`), read in one go
-    (:meth:`read`): one host read per step, not one per loss."""
-
-    def __init__(self, dtype, size: int = 16) -> None:
-        self.values = ti.ndarray(dtype, (size,))
-        self.names: list[str] = []
-
-    def at(self, *names: str) -> Slot:
-        """The next ``len(names)`` slots, for the values of one loss call, in its order."""
-        if len(self.names) + len(names) > self.values.shape[0]:
-            raise ValueError(f"more than {self.values.shape[0]} loss values in one step")
-        slot = Slot(self.values, len(self.names))
-        self.names += names
-        return slot
-
-    def clear(self) -> None:
-        """Forget the named slots (a step that runs again)."""
-        self.names = []
-
-    def read(self) -> dict[str, float]:
-        """Every named value, in one read; the slots are then free for the next step."""
-        values = host_copy.read(self.values, len(self.names)) if self.names else []
-        named = {name: float(value) for name, value in zip(self.names, values)}
-        self.clear()
-        return named
-
-
 def _run(kernel, dt, count: int, into: Slot | None, *args) -> tuple[float, ...] | None:
     """Launch a loss kernel that leaves ``count`` values at ``into``; without ``into``, read them (one read)."""
-    slot = into or Slot(_buffer("values", dt, (2,)), 0)
+    own = _own_values(dt)
+    slot = into or own.rows("values", 1, count)
+    if into is not None and into.size != count:
+        raise ValueError(f"a slot of {into.size} values for a loss of {count}")
     kernel(*args, slot.values, slot.at)
     if into is not None:
         return None
-    return tuple(float(v) for v in host_copy.read(slot.values, count))
+    return tuple(float(v) for v in own.read()["values"][0])
+
+
+@functools.cache
+def _own_values(dt) -> StepValues:
+    """Where a loss called without ``into`` leaves its values before they are read."""
+    return StepValues(dt, 16)
 
 
 def l1(pred: ti.Ndarray, target: ti.Ndarray, grad: ti.Ndarray, weight: float = 1.0,

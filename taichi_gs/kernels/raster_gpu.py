@@ -376,15 +376,16 @@ def make(dt) -> SimpleNamespace:
     def sum_rows(
         src: fnd(2),  # (n, 6)
         n: ti.i32,
-        dst: fnd(2),  # output rows dst_row .. dst_row + max(1, ceil(n / POSE_BLOCK)), 6 columns
-        dst_row: ti.i32,
-        offsets: ind(1),  # (N + 1,) slot offsets (last level: S = offsets[N] goes to column 6)
+        dst: fnd(2),  # output rows max(1, ceil(n / POSE_BLOCK)), 6 columns (not the last level)
+        pose_out: fnd(1),  # the last level's output: a pose row (splat.POSE_COLUMNS values) from pose_at
+        pose_at: ti.i32,
+        offsets: ind(1),  # (N + 1,) slot offsets (last level: S = offsets[N] goes to the pose row's value 6)
         n_gaussians: ti.i32,  # N
-        cap: ti.i32,  # C (last level: column 7 = 1 when S > C)
-        last: ti.template(),  # the last level: dst is a pose row (splat.POSE_COLUMNS)
+        cap: ti.i32,  # C (last level: value 7 = 1 when S > C)
+        last: ti.template(),  # the last level: one block, its sum the pose row
     ):
-        """dst[dst_row + b] = sum of src rows [b * POSE_BLOCK, (b + 1) * POSE_BLOCK) (6 columns), tree in shared
-        memory (one row of zeros for n = 0)."""
+        """dst[b] = sum of src rows [b * POSE_BLOCK, (b + 1) * POSE_BLOCK) (6 columns), tree in shared memory (one
+        row of zeros for n = 0); on the last level the one sum goes to the pose row instead."""
         ti.loop_config(block_dim=POSE_BLOCK)
         for i in range(ti.max(1, (n + POSE_BLOCK - 1) // POSE_BLOCK) * POSE_BLOCK):
             tid = i % POSE_BLOCK
@@ -402,11 +403,14 @@ def make(dt) -> SimpleNamespace:
                         buf[tid, c] = buf[tid, c] + buf[tid + half, c]  # (+= would be an atomic)
                 sync()
             if tid == 0:
-                for c in ti.static(range(6)):
-                    dst[dst_row + i // POSE_BLOCK, c] = buf[0, c]
                 if ti.static(last):
-                    dst[dst_row, 6] = ti.cast(offsets[n_gaussians], dt)
-                    dst[dst_row, 7] = ti.cast(offsets[n_gaussians] > cap, dt)
+                    for c in ti.static(range(6)):
+                        pose_out[pose_at + c] = buf[0, c]
+                    pose_out[pose_at + 6] = ti.cast(offsets[n_gaussians], dt)
+                    pose_out[pose_at + 7] = ti.cast(offsets[n_gaussians] > cap, dt)
+                else:
+                    for c in ti.static(range(6)):
+                        dst[i // POSE_BLOCK, c] = buf[0, c]
 
     return SimpleNamespace(
         project_keys=project_keys, bin_slots=bin_slots, ranges_and_gather=ranges_and_gather,
@@ -459,9 +463,9 @@ class GpuPipeline:
                              view.rgb, view.depth, view.transmittance, view.last)
         clock("blend")
 
-    def backward(self, view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, pose_row: int) -> None:
+    def backward(self, view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, pose_at: int) -> None:
         """Add parameter gradients into ``gaussians.grads``; the pose gradient, the slot count and whether it
-        overflowed go to row ``pose_row`` of ``pose_out`` (splat.POSE_COLUMNS)."""
+        overflowed go to ``pose_out`` from ``pose_at`` (splat.POSE_COLUMNS values)."""
         width, height = view.size
         n = gaussians.n
         s = self.scratch
@@ -484,8 +488,8 @@ class GpuPipeline:
         while True:  # one launch per level of 256-row block sums (2 up to 65,536 Gaussians)
             n_out = max(1, -(-count // POSE_BLOCK))
             last = n_out == 1
-            out = pose_out if last else s.get(f"pose_rows{level + 1}", n_out, self.dtype, (6,))
-            self.k.sum_rows(rows, count, out, pose_row if last else 0, view.depth_offsets, n, view.cap, last)
+            out = s.get("pose_rows_last" if last else f"pose_rows{level + 1}", n_out, self.dtype, (6,))
+            self.k.sum_rows(rows, count, out, pose_out, pose_at, view.depth_offsets, n, view.cap, last)
             if last:
                 return
             rows, count, level = out, n_out, level + 1

@@ -59,13 +59,19 @@ def span_at(j, w, span: ti.template()):
 
 
 @ti.func
+def row_sum(parts: ti.template(), v, n, q: ti.template()):
+    """Row v's span partials parts[., q] summed in order (n spans a row)."""
+    acc = parts[v * n, q]
+    for j in range(v * n + 1, v * n + n):
+        acc += parts[j, q]
+    return acc
+
+
+@ti.func
 def sum_rows(parts: ti.template(), rows: ti.template(), h, w, span: ti.template(), cols: ti.template()):
     """rows[v, q] = row v's span partials parts[., q] summed in order, for q < cols (a parallel loop
     over the h rows; for GPU spans: on the CPU a span's partial already is its row's)."""
     n = per_row(w, span)
     for v in range(h):
         for q in ti.static(range(cols)):
-            acc = parts[v * n, q]
-            for j in range(v * n + 1, v * n + n):
-                acc += parts[j, q]
-            rows[v, q] = acc
+            rows[v, q] = row_sum(parts, v, n, q)

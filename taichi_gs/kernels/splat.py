@@ -12,9 +12,10 @@ sort + gather of tile-ordered records; blending). The slot buffers hold the Rast
 trigger recompiles); the slot count stays on the device. A view whose slots do not fit renders nothing:
 a checked forward (the default) reads its count and renders again; a ``deferred`` one reads nothing.
 Per backward: one launch (tile replay, per-Gaussian reduction + projection backward, pose sum); the pose
-gradient is read back (a checked backward), or left in a row of :attr:`Rasterizer.pose_rows` with the
-view's slot count and overflow flag, so that a step's k views come back in one read
-(:meth:`Rasterizer.pose_gradients`), which also says whether any of them overflowed.
+gradient is read back (a checked backward), or left with the view's slot count and overflow flag in a pose
+row of a training step's values (``pose_into``, :mod:`~taichi_gs.kernels.step_values`), so that a step's k
+views come back in the step's one read; :meth:`Rasterizer.pose_gradients` of the rows read also says whether
+any of them overflowed.
 That is the CPU path (one thread per tile); on GPU backends the Rasterizer hands both passes to
 :class:`~taichi_gs.kernels.raster_gpu.GpuPipeline` (block per tile, thread per pixel).
 ``forward(..., with_colour=False)`` blends depth and alpha only (stage 2): the CPU path skips the
@@ -34,6 +35,7 @@ from . import host_copy, raster_gpu, runtime, scan, tiles
 from .project import P_WIDTH
 from .rasterize import B_WIDTH, E_WIDTH, F_WIDTH, N_SLOT_GRADS
 from .splat_cpu import COUNT_RUNS, POSE_CHUNK, POSE_COLUMNS, SCAN_CHUNK, cpu_kernels
+from .step_values import Slot, StepValues
 from .tiles import TILE
 
 
@@ -275,9 +277,10 @@ class Rasterizer:
     of the rasterizer's dtype or None (zero).
 
     A training step reads nothing per view: ``forward(..., deferred=True)`` and ``backward(...,
-    pose_row=j)`` (the pose gradient left in row j of :attr:`pose_rows`), then once per step
-    :meth:`pose_gradients` (the rows in one read; None when a view's slots did not fit its buffers: they
-    are grown, run the step again).
+    pose_into=rows.row(j, POSE_COLUMNS))`` (the pose gradient left in row j of a slot ``rows`` of the step's
+    :class:`~taichi_gs.kernels.step_values.StepValues`), then once per step, on the rows read,
+    :meth:`pose_gradients` (None when a view's slots did not fit its buffers: they are grown, run the step
+    again).
     """
 
     def __init__(self, dtype=ti.f32) -> None:
@@ -293,8 +296,7 @@ class Rasterizer:
         self._scratch: dict[object, ti.Ndarray] = {}
         self.slot_capacity = 0  # slots each view's buffers hold (0: not yet counted)
         self._sized_for = 0  # the Gaussian count the capacity was set for (it grows with them)
-        self.pose_rows = ti.ndarray(dtype, (16, POSE_COLUMNS))  # rows of backward(..., pose_row=j)
-        self._own_pose = ti.ndarray(dtype, (1, POSE_COLUMNS))  # that of a checked backward
+        self._own_pose = StepValues(dtype, POSE_COLUMNS)  # the pose row of a checked backward
 
     @profiling.timed("render forward", phases="timings")
     def forward(
@@ -308,7 +310,7 @@ class Rasterizer:
         renders depth and alpha only (stage 2): the CPU path skips the colour sums and leaves ``rgb``
         black, and the view's backward takes no colour gradient (GPU backends render colour anyway).
         ``deferred``: no host read (the slot count stays on the device); the view holds the render once
-        :meth:`pose_gradients` has read its backward's row (before that it may be empty)."""
+        :meth:`pose_gradients` has taken its backward's row (before that it may be empty)."""
         if gaussians.dtype != self.dtype:
             raise ValueError("gaussians and rasterizer use different float types")
         v = self.views.setdefault(view, View(self.dtype))
@@ -326,15 +328,15 @@ class Rasterizer:
                 return v
             self._grow(v.n_slots, gaussians.n)
 
-    def pose_gradients(self, rows: int) -> np.ndarray | None:
-        """The pose gradients of ``backward(..., pose_row=j)`` for j < ``rows``, (rows, 6) float64, in one read;
-        None when one of those views had more tile slots than its buffers held (it rendered nothing): the
-        capacity is then grown, and the step must be run again."""
-        values = host_copy.read(self.pose_rows, rows).astype(np.float64)
-        if values[:, 7].any():
-            self._grow(int(values[:, 6].max()) + 1, max(v.n for v in self.views.values()))
+    def pose_gradients(self, rows: np.ndarray) -> np.ndarray | None:
+        """The pose gradients (k, 6) float64 in the pose rows (k, POSE_COLUMNS) that k ``backward(...,
+        pose_into=)`` calls left and the step read; None when one of those views had more tile slots than its
+        buffers held (it rendered nothing): the capacity is then grown, and the step must be run again."""
+        rows = np.asarray(rows, np.float64)
+        if rows[:, 7].any():
+            self._grow(int(rows[:, 6].max()) + 1, max(v.n for v in self.views.values()))
             return None
-        return values[:, :6]
+        return rows[:, :6]
 
     def _grow(self, slots: int, n: int) -> None:
         """Make room for ``slots`` slots (a view's count) with headroom, for ``n`` Gaussians."""
@@ -391,9 +393,10 @@ class Rasterizer:
 
     @profiling.timed("render backward")
     def backward(self, gaussians: DeviceGaussians, view: View, d_rgb=None, d_depth=None, d_alpha=None,
-                 pose_row: int | None = None) -> np.ndarray | None:
-        """Accumulate dL/dparams into ``gaussians.grads``; return dL/d(pose) (6,), or with ``pose_row`` leave it
-        in that row of :attr:`pose_rows` (no read) and return None."""
+                 pose_into: Slot | None = None) -> np.ndarray | None:
+        """Accumulate dL/dparams into ``gaussians.grads``; return dL/d(pose) (6,), or with ``pose_into`` (a slot
+        of POSE_COLUMNS values) leave it there with the view's slot count and overflow flag (no read) and return
+        None."""
         width, height = view.size
         n = gaussians.n
         if n != view.n:
@@ -403,18 +406,21 @@ class Rasterizer:
         d_rgb = self._zero_if_none(d_rgb, (height, width, 3))
         d_depth = self._zero_if_none(d_depth, (height, width))
         d_alpha = self._zero_if_none(d_alpha, (height, width))
-        pose_out, row = (self._own_pose, 0) if pose_row is None else (self._pose_row(pose_row), pose_row)
+        own = self._own_pose
+        slot = pose_into or own.rows("pose", 1, POSE_COLUMNS)
+        if slot.size != POSE_COLUMNS:
+            raise ValueError(f"a pose row of {POSE_COLUMNS} values, not {slot.size}")
         cam, intr = camera_args(view.camera, self.dtype)
         bg = ti.Vector([float(b) for b in view.background], dt=self.dtype)
         if self.gpu is not None:
-            self.gpu.backward(view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, row)
+            self.gpu.backward(view, gaussians, cam, intr, bg, d_rgb, d_depth, d_alpha, slot.values, slot.at)
         else:
-            self._backward_cpu(gaussians, view, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, row)
-        if pose_row is not None:
+            self._backward_cpu(gaussians, view, cam, intr, bg, d_rgb, d_depth, d_alpha, slot.values, slot.at)
+        if pose_into is not None:
             return None
-        return host_copy.read(self._own_pose)[0, :6].astype(np.float64)
+        return own.read()["pose"][0, :6]
 
-    def _backward_cpu(self, gaussians, view, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, row) -> None:
+    def _backward_cpu(self, gaussians, view, cam, intr, bg, d_rgb, d_depth, d_alpha, pose_out, pose_at) -> None:
         width, height = view.size
         n = gaussians.n
         s = self._scratch
@@ -431,19 +437,9 @@ class Rasterizer:
             view.transmittance, view.last, d_rgb, d_depth, d_alpha,
             self._state(B_WIDTH, width, height), s["slot_grad"],
             g["means"], g["quats"], g["log_scales"], g["opacity_logits"], g["colors"],
-            s["pose_part"], s["pose_chunks"], pose_out, row, gaussians.isotropic, gaussians.view_dependent,
+            s["pose_part"], s["pose_chunks"], pose_out, pose_at, gaussians.isotropic, gaussians.view_dependent,
             bool(view.with_colour),
         )
-
-    def _pose_row(self, row: int) -> ti.Ndarray:
-        """:attr:`pose_rows`, grown (its rows kept) to hold row ``row``."""
-        if row >= self.pose_rows.shape[0]:
-            grown = ti.ndarray(self.dtype, (2 * row + 2, POSE_COLUMNS))
-            values = np.zeros(grown.shape)
-            values[: self.pose_rows.shape[0]] = host_copy.read(self.pose_rows)
-            host_copy.write(grown, values)
-            self.pose_rows = grown
-        return self.pose_rows
 
     def _state(self, columns: int, width: int, height: int) -> ti.Ndarray:
         """Per-pixel scratch of the blending passes, shared by all views: flat, ``columns`` values per pixel, each

@@ -207,8 +207,8 @@ def cpu_kernels(dt) -> SimpleNamespace:
         d_sh: fnd(3),  # out, added to (N, M, 3)
         pose_part: fnd(2),  # scratch (N, 6)
         pose_chunks: fnd(2),  # scratch (N / POSE_CHUNK + 1, 6)
-        pose_rows: fnd(2),  # out row pose_row (POSE_COLUMNS): dL/d left perturbation of the camera,
-        pose_row: ti.i32,  # [translation, rotation], then the slot count S and 1 when it overflowed (S > C)
+        pose_out: fnd(1),  # out, POSE_COLUMNS values from pose_at: dL/d left perturbation of the camera,
+        pose_at: ti.i32,  # [translation, rotation], then the slot count S and 1 when it overflowed (S > C)
         isotropic: ti.template(),
         view_dependent: ti.template(),  # M > 1
         with_colour: ti.template(),  # as the forward was rendered
@@ -240,10 +240,10 @@ def cpu_kernels(dt) -> SimpleNamespace:
             total = ti.cast(0.0, dt)
             for chunk in range((n + POSE_CHUNK - 1) // POSE_CHUNK):
                 total += pose_chunks[chunk, c]
-            pose_rows[pose_row, c] = total
+            pose_out[pose_at + c] = total
             if c == 0:
-                pose_rows[pose_row, 6] = ti.cast(offsets[n], dt)
-                pose_rows[pose_row, 7] = ti.cast(offsets[n] > cap, dt)
+                pose_out[pose_at + 6] = ti.cast(offsets[n], dt)
+                pose_out[pose_at + 7] = ti.cast(offsets[n] > cap, dt)
 
     return SimpleNamespace(
         project_and_count=project_and_count, bin_and_sort=bin_and_sort, blend=blend, backward=backward,

@@ -20,7 +20,8 @@ pixel instead of 16 taps, forward and backward.
 Backward (z held fixed: the fixed point's nearest-pixel lookups are piecewise constant): dL/d anchor
 colour (the interpolation weights' transpose, added into the caller's buffer) and, per view, dL/d
 epsilon, the 6-vector [translation, rotation] of a left perturbation ``exp(epsilon) target_to_anchor``
-in the anchor's camera frame (summed per image row, then in float64 on the host);
+in the anchor's camera frame (summed per image row, then in float64 on the host: the rows can wait in a
+training step's values, :mod:`~taichi_gs.kernels.step_values`, for its one read);
 ``geometry.relative_pose_gradients`` turns it into the two cameras' world perturbations.
 
 Loop structure: the CPU runs a task per image row, and its backward scatters without atomics (slow
@@ -38,6 +39,7 @@ import taichi as ti
 
 from .. import profiling
 from . import host_copy, runtime, scan
+from .step_values import Slot, StepValues
 
 FIXED_POINT_STEPS = 1  # depth refinements after the first guess (none are needed for a pure rotation)
 MIN_ALPHA = 0.5  # anchor pixels with less accumulated opacity have no surface: the fallback depth is used
@@ -53,6 +55,7 @@ LANE_SPREAD = 1024  # loop indices per lane: a loop this long is spread over the
 def _kernels(dt) -> SimpleNamespace:
     img3 = ti.types.ndarray(dtype=dt, ndim=3)
     img2 = ti.types.ndarray(dtype=dt, ndim=2)
+    flat = ti.types.ndarray(dtype=dt, ndim=1)
     vec3 = ti.types.vector(3, dt)
     vec4 = ti.types.vector(4, dt)
     spread = runtime.loop_spread()  # image rows x spread indices (see runtime.loop_spread)
@@ -309,8 +312,11 @@ def _kernels(dt) -> SimpleNamespace:
         weight: dt,
         with_anchor: ti.i32,  # 0: dL/d epsilon only (grad_anchor untouched)
         grad_anchor: img3,  # out, added to (Hp, Wp, 3)
-        rows: img2,  # out, zero on entry (>= H V, N_POSE): dL/d epsilon per image row and view
+        out: flat,  # out: dL/d epsilon per image row and view, (H V, N_POSE) row-major from out[at]
+        at: ti.i32,
     ):
+        for i in range(grad_out.shape[0] * n_views * N_POSE):  # the rows zeroed (a loop runs after the one before)
+            out[at + i] = 0.0
         for v, u in ti.ndrange(grad_out.shape[0], grad_out.shape[1]):  # GPU: a thread per pixel
             for view in range(n_views):
                 g = weight * rgb_at(grad_out, v, u)
@@ -330,7 +336,7 @@ def _kernels(dt) -> SimpleNamespace:
                     if with_anchor:
                         scatter(x0, y0, wx, wy, g, hp, wp, grad_anchor, 0, False)
                 for c in ti.static(range(N_POSE)):
-                    ti.atomic_add(rows[v * n_views + view, c], pose[c])
+                    ti.atomic_add(out[at + (v * n_views + view) * N_POSE + c], pose[c])
 
     @ti.kernel
     def backward_lanes(
@@ -347,7 +353,8 @@ def _kernels(dt) -> SimpleNamespace:
         lanes: ti.i32,
         private: ti.types.ndarray(dtype=dt, ndim=1),  # scratch (lanes, Hp, Wp, 3) flat, zero on entry and on exit
         grad_anchor: img3,  # out, added to (Hp, Wp, 3)
-        rows: img2,
+        out: flat,
+        at: ti.i32,
     ):
         h = grad_out.shape[0]
         for i in range(lanes * LANE_SPREAD):
@@ -367,7 +374,7 @@ def _kernels(dt) -> SimpleNamespace:
                                 pixel_scatter(u, v, grad_out, z_in, view, R, t, intr, margin, weight,
                                               anchor_rgb.shape[0], anchor_rgb.shape[1], private, lane, True, identity)
                         for c in ti.static(range(N_POSE)):
-                            rows[v * n_views + view, c] = acc[c]
+                            out[at + (v * n_views + view) * N_POSE + c] = acc[c]
         for i in range(grad_anchor.shape[0] * spread * with_anchor):
             if i % spread == 0:
                 y = i // spread
@@ -440,30 +447,55 @@ def accumulate(anchor_rgb: ti.Ndarray, anchor_depth: ti.Ndarray, anchor_trans: t
 
 @profiling.timed("warped views (device)")
 def backward(grad_out: ti.Ndarray, anchor_rgb: ti.Ndarray, z: ti.Ndarray, targets_to_anchor: np.ndarray,
-             K: np.ndarray, margin: int, weight: float, grad_anchor: ti.Ndarray | None) -> np.ndarray:
+             K: np.ndarray, margin: int, weight: float, grad_anchor: ti.Ndarray | None,
+             into: Slot | None = None) -> np.ndarray | None:
     """Given dL/d out of :func:`accumulate`'s term (``grad_out`` (H, W, 3); the term is ``weight`` x the
     sum of the warped views), add dL/d anchor colour into ``grad_anchor`` (None: not wanted, the anchor is
     a constant) and return dL/d epsilon (V, 6) [translation, rotation] for ``exp(epsilon) @
     targets_to_anchor[i]``, epsilon in the anchor's frame. With a transform per image row (V, H, 4, 4), the
-    perturbation moves every row of view i alike: ``exp(epsilon) @ targets_to_anchor[i, v]``."""
+    perturbation moves every row of view i alike: ``exp(epsilon) @ targets_to_anchor[i, v]``. ``into`` (a slot
+    of :func:`pose_rows` (H, V) rows of a step's values): leave the per-row sums there and return None;
+    :func:`pose_sums` of the rows read is then the return value."""
     dtype, height = grad_out.dtype, grad_out.shape[0]
     views, rows_per_view, transforms, intr = _args(targets_to_anchor, K, margin, height, dtype)
     _check(anchor_rgb, grad_out, margin, z, views)
-    rows = _scratch.get(f"warp rows {dtype}", height * views, dtype, (N_POSE,))
+    own = _own_values(dtype)
+    slot = into or own.rows("warp rows", pose_rows(height, views), N_POSE)
+    if slot.size != pose_rows(height, views) * N_POSE:
+        raise ValueError(f"a slot of {slot.size} values for {height} x {views} rows of the warp's pose gradient")
     kernels = _kernels(dtype)
     backend = runtime.current()
     with_anchor = int(grad_anchor is not None)
     grad_anchor = anchor_rgb if grad_anchor is None else grad_anchor  # any (Hp, Wp, 3) array: not written
     if backend.gpu_kernels:
-        rows.fill(0.0)
         kernels.backward_atomic(grad_out, anchor_rgb, z, transforms, views, rows_per_view, intr, margin, weight,
-                                with_anchor, grad_anchor, rows)
+                                with_anchor, grad_anchor, slot.values, slot.at)
     else:
         lanes = max(backend.cpu_threads, 1)
         private = _private_gradients(lanes, tuple(anchor_rgb.shape), dtype)
         kernels.backward_lanes(grad_out, anchor_rgb, z, transforms, views, rows_per_view, intr, margin, weight,
-                               with_anchor, lanes, private, grad_anchor, rows)
-    return host_copy.read(rows, height * views).astype(np.float64).reshape(height, views, N_POSE).sum(axis=0)
+                               with_anchor, lanes, private, grad_anchor, slot.values, slot.at)
+    if into is not None:
+        return None
+    return pose_sums(own.read()["warp rows"], views)
+
+
+def pose_rows(height: int, views: int) -> int:
+    """Rows of N_POSE values a :func:`backward` of ``views`` views of ``height`` rows leaves: one per image row
+    and view."""
+    return height * views
+
+
+def pose_sums(rows: np.ndarray, views: int) -> np.ndarray:
+    """dL/d epsilon (V, 6) from the rows a :func:`backward` left (float64 (H V, N_POSE)), summed over the image
+    rows in float64."""
+    return np.asarray(rows, np.float64).reshape(-1, views, N_POSE).sum(axis=0)
+
+
+@functools.cache
+def _own_values(dtype) -> StepValues:
+    """Where a :func:`backward` without ``into`` leaves its rows before they are read."""
+    return StepValues(dtype)
 
 
 def _private_gradients(lanes: int, shape: tuple, dtype) -> ti.Ndarray:

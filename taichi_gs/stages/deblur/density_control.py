@@ -61,29 +61,66 @@ class DensitySchedule:
 
 
 class DensityControl:
-    """Positional-gradient statistics of a store's Gaussians and the operations they drive."""
+    """Positional-gradient statistics of a store's Gaussians and the operations they drive.
+
+    The statistics accumulate on the device (``observe``: a launch, no read); :attr:`grad_sum` and
+    :attr:`grad_count` read them back (once, when densifying, pruning, reordering or saving) and are then
+    the host's (float64 arrays, changed in place or replaced freely) until the next ``observe`` writes them
+    back."""
 
     def __init__(self, count: int):
-        self.grad_sum = np.zeros(count)
-        self.grad_count = np.zeros(count)
+        self._device = density_stats.GradientStatistics()
+        self._host: tuple[np.ndarray, np.ndarray] | None = (np.zeros(count), np.zeros(count))
+        self._count = count  # Gaussians the statistics are kept for
+
+    @property
+    def grad_sum(self) -> np.ndarray:
+        """Each Gaussian's sum of image-plane gradients (pixels) over the steps that saw it."""
+        return self._on_host()[0]
+
+    @grad_sum.setter
+    def grad_sum(self, values: np.ndarray) -> None:
+        self._set(np.asarray(values, np.float64), self.grad_count)
+
+    @property
+    def grad_count(self) -> np.ndarray:
+        """How many steps saw each Gaussian (a positional gradient not exactly 0)."""
+        return self._on_host()[1]
+
+    @grad_count.setter
+    def grad_count(self, values: np.ndarray) -> None:
+        self._set(self.grad_sum, np.asarray(values, np.float64))
+
+    def _on_host(self) -> tuple[np.ndarray, np.ndarray]:
+        """The statistics as host arrays, read from the device if steps were observed since."""
+        if self._host is None:
+            self._host = self._device.read(self._count)
+        return self._host
+
+    def _set(self, sums: np.ndarray, counts: np.ndarray) -> None:
+        self._host, self._count = (sums, counts), len(sums)
+
+    def _reset(self, count: int) -> None:
+        """Start the statistics again at zero for ``count`` Gaussians."""
+        self._set(np.zeros(count), np.zeros(count))
 
     @profiling.timed("densification statistics")
     def observe(self, store: GaussianStore, cam_to_world: np.ndarray, focal: float) -> None:
-        """Add each Gaussian's positional gradient of this step, in image-plane pixels (|g| z / f)."""
+        """Add each Gaussian's positional gradient of this step, in image-plane pixels (|g| z / f), on the device."""
+        if self._host is not None:  # the host's statistics (changed or not) go back first
+            self._device.write(*self._host)
+            self._host = None
         params, grads = store.gaussians.params, store.gaussians.grads
-        pixels = density_stats.image_plane_gradient(params["means"], grads["means"], store.count, cam_to_world, focal)
-        seen = pixels >= 0
-        self.grad_sum[seen] += pixels[seen]
-        self.grad_count[seen] += 1
+        self._device.add(params["means"], grads["means"], store.count, cam_to_world, focal)
 
     def reorder(self, order: np.ndarray) -> None:
         """Follow the store's :meth:`GaussianStore.reorder` with the statistics."""
-        self.grad_sum, self.grad_count = self.grad_sum[order], self.grad_count[order]
+        self._set(self.grad_sum[order], self.grad_count[order])
 
     def appended(self, count: int) -> None:
         """Statistics for ``count`` Gaussians appended to the store by someone else (start at zero)."""
-        self.grad_sum = np.concatenate([self.grad_sum, np.zeros(count)])
-        self.grad_count = np.concatenate([self.grad_count, np.zeros(count)])
+        zeros = np.zeros(count)
+        self._set(np.concatenate([self.grad_sum, zeros]), np.concatenate([self.grad_count, zeros]))
 
     def step(self, done: int, store: GaussianStore, schedule: DensitySchedule, rng: np.random.Generator,
              also: np.ndarray | None = None) -> None:
@@ -120,8 +157,7 @@ class DensityControl:
         halves = split_rows(store, split, rng)
         store.append({name: np.concatenate([new_rows[name], halves[name]]) for name in store.fields})
         removed = prune(store, min_opacity, max_scale)
-        self.grad_sum = np.zeros(store.count)
-        self.grad_count = np.zeros(store.count)
+        self._reset(store.count)
         return len(grow), removed
 
     def drop_lightest(self, store: GaussianStore, weights: np.ndarray, share: float) -> int:
@@ -132,8 +168,7 @@ class DensityControl:
         if keep.all():
             return 0
         store.keep(keep)
-        self.grad_sum = np.zeros(store.count)
-        self.grad_count = np.zeros(store.count)
+        self._reset(store.count)
         return int((~keep).sum())
 
     def split_oversized(self, store: GaussianStore, max_scale: np.ndarray, max_gaussians: int,
@@ -153,14 +188,13 @@ class DensityControl:
             store.append(split_rows(store, split, rng))
             limit = np.concatenate([limit, limit[split]])
             added += len(split)
-            self.grad_sum = np.zeros(store.count)
-            self.grad_count = np.zeros(store.count)
+            self._reset(store.count)
 
     def state(self) -> dict[str, np.ndarray]:
         return {"grad_sum": self.grad_sum, "grad_count": self.grad_count}
 
     def load_state(self, state: dict[str, np.ndarray]) -> None:
-        self.grad_sum, self.grad_count = state["grad_sum"].copy(), state["grad_count"].copy()
+        self._set(state["grad_sum"].copy(), state["grad_count"].copy())
 
 
 def clone_rows(store: GaussianStore, rows: np.ndarray) -> dict[str, np.ndarray]:

@@ -22,7 +22,7 @@ from ...geometry import (
     virtual_pose,
 )
 from ...noreference import eroded
-from ...render import Camera, Rasterizer, affine, blur, host_copy, losses, to_device, warp
+from ...render import POSE_COLUMNS, Camera, Rasterizer, StepValues, affine, blur, host_copy, losses, to_device, warp
 from ...rolling_shutter import shutter_rows
 from ...splats import SH_C0, Splats, logit, rgb_to_sh_dc
 from .density_control import DensityControl
@@ -158,7 +158,7 @@ class BlurScene(OnStore):
         self.grad_depth = to_device(np.zeros((height, width), np.float32), dtype)
         self.sourced = sourced
         self.l1_pixels, self.ssim_pixels = loss_pixels(sourced, dtype)
-        self.loss_values = losses.LossValues(dtype)  # a step's loss values, read once per step
+        self.step_values = StepValues(dtype)  # what a step's kernels leave for the host, read once per step
         padded = (height + 2 * warp_margin, width + 2 * warp_margin)
         self.padded_depth_target = to_device(np.zeros(padded, np.float32), dtype)
         self.padded_grad_depth = to_device(np.zeros(padded, np.float32), dtype)
@@ -232,12 +232,14 @@ class BlurScene(OnStore):
         host_copy.write(self.frame, frame)
         fallback = median_depth(depth) if anchors > 0 and fallback_depth is None else fallback_depth
         while True:  # again when a render's tile slots overflowed its buffers (they are grown: it fits the next time)
-            exposure, grad_colour, grad_taus, pose_grads = self._forward_backward(
-                depth, base, d_start, d_end, exposure_taus(k), lambda_dssim, lambda_depth, colour, anchors,
-                fallback, frozen, rows)
-            if pose_grads is not None:
+            exposure = self._forward_backward(depth, base, d_start, d_end, exposure_taus(k), lambda_dssim,
+                                              lambda_depth, colour, anchors, fallback, frozen, rows)
+            values = self.step_values.read()  # the step's one host read
+            gradients = exposure.pose_gradients(values)
+            if gradients is not None:
                 break
-        values = self.loss_values.read()
+        grad_taus, pose_grads = gradients
+        grad_colour = None if colour is None else affine.matrix_gradient(values["colour"])
         g_start, g_end = exposure_pose_gradients(base, d_start, d_end, grad_taus, pose_grads)
         if rates is not None:
             if observe:
@@ -247,12 +249,12 @@ class BlurScene(OnStore):
                         float(-10 * np.log10(max(values["mse"], 1e-12))), g_start, g_end, grad_colour)
 
     def _forward_backward(self, depth, base, d_start, d_end, taus, lambda_dssim, lambda_depth, colour, anchors,
-                          fallback, frozen, rows) -> tuple:
-        """One pass of :meth:`step` up to the Gaussians' and the poses' gradients, its renders deferred, its loss
-        values left in :attr:`loss_values`: (exposure, colour gradient, exposure fractions, pose gradients), the
-        pose gradients None when a render's tile slots overflowed (then the rest is void and the pass must be run
-        again)."""
-        values = self.loss_values
+                          fallback, frozen, rows) -> _RenderedExposure | _WarpedExposure:
+        """One pass of :meth:`step` up to the Gaussians' gradients, its renders deferred, its loss values, the
+        colour transform's gradient rows ("colour") and the poses' gradient rows left in :attr:`step_values`;
+        returns the exposure, whose ``pose_gradients`` of the values read says whether a render's tile slots
+        overflowed (then the rest is void and the pass must be run again)."""
+        values = self.step_values
         values.clear()
         if anchors > 0:
             exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen, rows,
@@ -268,9 +270,9 @@ class BlurScene(OnStore):
                                   mask=self.l1_pixels, into=values.at("l1", "mse"))
         losses.dssim(predicted, self.frame, grad_predicted, weight=lambda_dssim, mask=self.ssim_pixels,
                      into=values.at("dssim"))
-        grad_colour = None
         if colour is not None:
-            grad_colour = affine.backward(self.blurred, colour, self.grad_compensated, self.grad_blur)
+            affine.backward(self.blurred, colour, self.grad_compensated, self.grad_blur,
+                            into=values.rows("colour", self.height, affine.N_GRAD_M))
         grad_depth = None
         if lambda_depth > 0:
             target, grad_depth = exposure.depth_buffers(depth)
@@ -278,8 +280,8 @@ class BlurScene(OnStore):
                                    into=values.at("depth"))
         if frozen is None:
             self.gaussians.zero_grad()
-        grad_taus, pose_grads = exposure.backward(self.grad_blur, grad_depth)
-        return exposure, grad_colour, grad_taus, pose_grads
+        exposure.backward(self.grad_blur, grad_depth, values)
+        return exposure
 
     def error_mass(self, frame: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int,
                    colour: np.ndarray | None = None) -> np.ndarray:
@@ -310,8 +312,11 @@ class BlurScene(OnStore):
         colour's gradient (d rgb / d dc = blending weight x SH_C0), summed on the device."""
         host_copy.write(self.grad_view, np.repeat(np.asarray(pixel_weights)[..., None], 3, axis=2))
         self.gaussians.zero_grad()
+        self.step_values.clear()
+        unread = self.step_values.rows("unread pose", 1, POSE_COLUMNS)  # every view's pose row, never read
         for view in views:
-            self.rasterizer.backward(self.gaussians, view, d_rgb=self.grad_view, pose_row=0)  # the pose unread
+            self.rasterizer.backward(self.gaussians, view, d_rgb=self.grad_view, pose_into=unread)
+        self.step_values.clear()
         mass = host_copy.read(self.gaussians.grads["colors"], self.count)[:, 0].sum(axis=1) / (3 * SH_C0)
         self.gaussians.zero_grad()
         return mass
@@ -327,10 +332,14 @@ class BlurScene(OnStore):
         view = self.rasterizer.forward(self.gaussians, camera, view=DEPTH_INSTANT_VIEW, with_colour=False)
         host_copy.write(self.depth_target, depth)
         self.grad_depth.fill(0.0)
-        loss = losses.masked_depth_l1(view.depth, self.depth_target, self.grad_depth, weight=weight)
-        g_pose = self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth)
-        g_start, g_end = exposure_pose_gradients(base, d_start, d_end, [0.5], [g_pose])
-        return weight * float(loss), g_start, g_end  # the kernel gives the unweighted mean
+        values = self.step_values
+        values.clear()
+        losses.masked_depth_l1(view.depth, self.depth_target, self.grad_depth, weight=weight, into=values.at("depth"))
+        pose = values.rows("pose", 1, POSE_COLUMNS)
+        self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, pose_into=pose)  # a checked render
+        read = values.read()
+        g_start, g_end = exposure_pose_gradients(base, d_start, d_end, [0.5], [read["pose"][0, :6]])
+        return weight * read["depth"], g_start, g_end  # the kernel gives the unweighted mean
 
     def render(self, cam_to_world: np.ndarray, min_alpha: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
         """Sharp colour (H, W, 3) and depth (H, W) at one pose, as NumPy; the depth is the blended z
@@ -416,17 +425,21 @@ class _RenderedExposure:
         self.scene.grad_depth.fill(0.0)
         return self.scene.depth_target, self.scene.grad_depth
 
-    def backward(self, grad_blurred, grad_depth) -> tuple[np.ndarray, list[np.ndarray]]:
+    def backward(self, grad_blurred, grad_depth, values: StepValues) -> None:
         """Back-propagate dL/d mean view (and the mid view's depth gradient, or None) into the Gaussians'
-        gradient buffers; returns (exposure fractions, world left-perturbation pose gradients), the k pose
-        gradients read in one go (None when a deferred render overflowed: see ``Rasterizer.pose_gradients``)."""
+        gradient buffers; the k views' pose rows wait in ``values`` (:meth:`pose_gradients`)."""
         scene = self.scene
         blur.spread(grad_blurred, len(self.taus), scene.grad_view)
+        rows = values.rows("render poses", len(self.views), POSE_COLUMNS)
         for j, v in enumerate(self.views):
             scene.rasterizer.backward(scene.gaussians, v, d_rgb=scene.grad_view,
-                                      d_depth=grad_depth if v is self.mid_view else None, pose_row=j)
-        poses = scene.rasterizer.pose_gradients(len(self.views))
-        return self.taus, None if poses is None else list(poses)
+                                      d_depth=grad_depth if v is self.mid_view else None, pose_into=rows.row(j))
+
+    def pose_gradients(self, values: dict) -> tuple[np.ndarray, list[np.ndarray]] | None:
+        """(exposure fractions, world left-perturbation pose gradients) from the step's values read; None when a
+        deferred render overflowed (see ``Rasterizer.pose_gradients``)."""
+        poses = self.scene.rasterizer.pose_gradients(values["render poses"])
+        return None if poses is None else (self.taus, list(poses))
 
 
 class _WarpedExposure:
@@ -469,26 +482,36 @@ class _WarpedExposure:
         scene.padded_grad_depth.fill(0.0)
         return scene.padded_depth_target, scene.padded_grad_depth
 
-    def backward(self, grad_blurred, grad_depth) -> tuple[list[float], list[np.ndarray]]:
-        """As :meth:`_RenderedExposure.backward`; the gradients come for the k views (through their warps)
-        and for the anchors (through the warps and their renders). Frozen anchors are fixed renders, not
-        functions of the exposure: the gradients come for the k views alone, and none reach the Gaussians."""
+    def backward(self, grad_blurred, grad_depth, values: StepValues) -> None:
+        """As :meth:`_RenderedExposure.backward`: each anchor's warp leaves its per-row pose gradients in
+        ``values``, and its render (unless frozen) its pose row."""
         scene = self.scene
-        view_grads, anchor_grads = [], []
+        rendered = None if self.frozen is not None else values.rows("render poses", len(self.anchor_views),
+                                                                     POSE_COLUMNS)
         for a, view in enumerate(self.anchor_views):  # the groups are consecutive runs of the k views, in order
             grad_anchor = scene.anchor_gradient() if self.frozen is None else None
-            g_relative = warp.backward(grad_blurred, view.rgb, self.depths[a], self.relative[a], scene.K,
-                                       scene.warp_margin, 1.0 / len(self.taus), grad_anchor)
+            warp.backward(grad_blurred, view.rgb, self.depths[a], self.relative[a], scene.K, scene.warp_margin,
+                          1.0 / len(self.taus), grad_anchor,
+                          into=values.rows(f"warp {a}", warp.pose_rows(scene.height, len(self.groups[a])),
+                                           warp.N_POSE))
+            if rendered is not None:
+                scene.rasterizer.backward(scene.gaussians, view, d_rgb=grad_anchor,
+                                          d_depth=grad_depth if view is self.mid_view else None,
+                                          pose_into=rendered.row(a))
+
+    def pose_gradients(self, values: dict) -> tuple[list[float], list[np.ndarray]] | None:
+        """As :meth:`_RenderedExposure.pose_gradients`; the gradients come for the k views (through their warps)
+        and for the anchors (through the warps and their renders). Frozen anchors are fixed renders, not
+        functions of the exposure: the gradients come for the k views alone, and none reach the Gaussians."""
+        view_grads, anchor_grads = [], []
+        for a, group in enumerate(self.groups):
+            g_relative = warp.pose_sums(values[f"warp {a}"], len(group))
             g_views, g_anchor = relative_pose_gradients(self.anchor_poses[a], g_relative)
             view_grads.extend(g_views)
-            if self.frozen is None:
-                anchor_grads.append(g_anchor)
-                scene.rasterizer.backward(scene.gaussians, view, d_rgb=grad_anchor,
-                                          d_depth=grad_depth if view is self.mid_view else None, pose_row=a)
-        if anchor_grads:  # the anchors' render pose gradients, read in one go
-            rendered = scene.rasterizer.pose_gradients(len(anchor_grads))
-            if rendered is None:  # a deferred anchor render overflowed
-                return self.taus, None
-            anchor_grads = list(np.asarray(anchor_grads) + rendered)
-        anchor_taus = [] if self.frozen is not None else list(self.anchor_taus)
-        return [*self.taus, *anchor_taus], [*view_grads, *anchor_grads]
+            anchor_grads.append(g_anchor)
+        if self.frozen is not None:
+            return self.taus, view_grads
+        rendered = self.scene.rasterizer.pose_gradients(values["render poses"])
+        if rendered is None:  # a deferred anchor render overflowed
+            return None
+        return [*self.taus, *self.anchor_taus], [*view_grads, *(np.asarray(anchor_grads) + rendered)]

@@ -9,7 +9,7 @@ import numpy as np
 from ... import profiling
 from ...gaussian_store import GaussianStore, OnStore, morton_order
 from ...geometry import raster_intrinsics
-from ...render import Camera, Rasterizer, host_copy, losses, to_device
+from ...render import POSE_COLUMNS, Camera, Rasterizer, Slot, StepValues, host_copy, losses, to_device
 from ...splats import logit
 
 FIXED_SCALE = ("means", "opacity_logits")
@@ -48,12 +48,12 @@ class DepthRefiner(OnStore):
         self.target_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_depth = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
         self.grad_alpha = to_device(np.zeros((height, width), np.float32), self.gaussians.dtype)
-        self.loss_values = losses.LossValues(self.gaussians.dtype)  # a step's loss values, read once per step
+        self.step_values = StepValues(self.gaussians.dtype)  # a step's loss values and pose rows, read once
 
     def _depth_backward(self, target_depth: np.ndarray, cam_to_world: np.ndarray, weight: float,
-                        coverage_weight: float, row: int) -> None:
-        """Render one camera (deferred), add its weighted loss gradients to the Gaussians, leave dL/dpose in the
-        rasterizer's pose row ``row`` and the depth and coverage terms in :attr:`loss_values`."""
+                        coverage_weight: float, row: int, pose_into: Slot) -> None:
+        """Render one camera (deferred), add its weighted loss gradients to the Gaussians, leave dL/dpose at
+        ``pose_into`` and the depth and coverage terms in :attr:`step_values` (named by ``row``)."""
         view = self.rasterizer.forward(self.gaussians, Camera(self.K, cam_to_world, self.width, self.height),
                                        with_colour=False, deferred=True)
         host_copy.write(self.target_depth, target_depth)
@@ -61,8 +61,9 @@ class DepthRefiner(OnStore):
         self.grad_alpha.fill(0.0)
         losses.normalised_depth_l1_and_coverage(
             view.depth, view.transmittance, self.target_depth, self.grad_depth, self.grad_alpha, self.min_alpha,
-            weight, coverage_weight, into=self.loss_values.at(f"depth {row}", f"coverage {row}"))
-        self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha, pose_row=row)
+            weight, coverage_weight, into=self.step_values.at(f"depth {row}", f"coverage {row}"))
+        self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, d_alpha=self.grad_alpha,
+                                 pose_into=pose_into)
 
     @profiling.timed("step host work (uploads, fills)")
     def step(self, target_depths: list[np.ndarray], cam_to_worlds: list[np.ndarray], lambda_depth: float,
@@ -73,24 +74,23 @@ class DepthRefiner(OnStore):
         ``lrs`` maps each trained parameter name to its learning rate (missing names: 0)."""
         n = self.gaussians.n
         views = len(cam_to_worlds)
-        if 2 * views + 1 > self.loss_values.values.shape[0]:
-            self.loss_values = losses.LossValues(self.gaussians.dtype, 2 * views + 1)
         while True:  # again when a render's tile slots overflowed its buffers (they are grown: it fits the next time)
             self.gaussians.zero_grad()
-            self.loss_values.clear()
+            self.step_values.clear()
+            poses = self.step_values.rows("poses", views, POSE_COLUMNS)
             for row, (d, T) in enumerate(zip(target_depths, cam_to_worlds)):
-                self._depth_backward(d, T, lambda_depth / views, lambda_coverage / views, row)
-            pose_grads = self.rasterizer.pose_gradients(views)
+                self._depth_backward(d, T, lambda_depth / views, lambda_coverage / views, row, poses.row(row))
+            # The method sums both losses; the depth term here is a mean over pixels, so the opacity
+            # weight is divided by the pixel count to keep the method's balance between the two sums.
+            losses.opacity_binarization(
+                self.gaussians.params["opacity_logits"], self.gaussians.grads["opacity_logits"], n,
+                weight=lambda_opacity / (self.width * self.height), into=self.step_values.at("opacity"),
+            )
+            values = self.step_values.read()  # the step's one host read
+            pose_grads = self.rasterizer.pose_gradients(values["poses"])
             if pose_grads is not None:
                 break
-        # The method sums both losses; the depth term here is a mean over pixels, so the opacity
-        # weight is divided by the pixel count to keep the method's balance between the two sums.
-        losses.opacity_binarization(
-            self.gaussians.params["opacity_logits"], self.gaussians.grads["opacity_logits"], n,
-            weight=lambda_opacity / (self.width * self.height), into=self.loss_values.at("opacity"),
-        )
         self.store.step(lrs)
-        values = self.loss_values.read()
         depth, coverage = (float(np.mean([values[f"{term} {row}"] for row in range(views)]))
                            for term in ("depth", "coverage"))
         return {"depth": depth, "coverage": coverage, "opacity": values["opacity"] / max(n, 1)}, list(pose_grads)
