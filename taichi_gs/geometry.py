@@ -234,9 +234,17 @@ def raster_intrinsics(K: np.ndarray) -> np.ndarray:
     return K
 
 
-def virtual_pose(base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, tau: float) -> np.ndarray:
-    """Pose at exposure fraction tau: ``base @ exp((1 - tau) d_start + tau d_end)``."""
-    return base @ se3_exp((1.0 - tau) * np.asarray(d_start) + tau * np.asarray(d_end))
+def exposure_twist(d_start: np.ndarray, d_end: np.ndarray, tau: float, bend: np.ndarray | None = None) -> np.ndarray:
+    """The twist at exposure fraction tau, ``(1 - tau) d_start + tau d_end``, plus [ours] ``4 tau (1 - tau) bend``:
+    a path bowed by ``bend`` at its middle and not at its ends (None: straight, the method's)."""
+    xi = (1.0 - tau) * np.asarray(d_start, dtype=np.float64) + tau * np.asarray(d_end, dtype=np.float64)
+    return xi if bend is None else xi + 4.0 * tau * (1.0 - tau) * np.asarray(bend, dtype=np.float64)
+
+
+def virtual_pose(base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, tau: float,
+                 bend: np.ndarray | None = None) -> np.ndarray:
+    """Pose at exposure fraction tau: ``base @ exp(exposure_twist(d_start, d_end, tau, bend))``."""
+    return base @ se3_exp(exposure_twist(d_start, d_end, tau, bend))
 
 
 def relative_pose_gradients(anchor: np.ndarray, g_relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -251,21 +259,21 @@ def relative_pose_gradients(anchor: np.ndarray, g_relative: np.ndarray) -> tuple
 
 @profiling.timed("exposure gradients (host)")
 def exposure_pose_gradients(
-    base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus, pose_grads
-) -> tuple[np.ndarray, np.ndarray]:
+    base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus, pose_grads, bend: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Chain the rasterizer's pose gradients of the k virtual views (left perturbations, one 6-vector
-    per tau) to the exposure offsets: returns (dL/d d_start, dL/d d_end) for :func:`virtual_pose`.
+    per tau) to the exposure offsets: returns (dL/d d_start, dL/d d_end, dL/d bend) for :func:`virtual_pose`.
 
-    Uses dL/dxi = J_r(xi)^T Ad(T_v)^T g_v with xi = (1 - tau) d_start + tau d_end and J_r in closed
+    Uses dL/dxi = J_r(xi)^T Ad(T_v)^T g_v with xi = :func:`exposure_twist` and J_r in closed
     form (:func:`se3_right_jacobian`)."""
-    g_start, g_end = np.zeros(6), np.zeros(6)
+    g_start, g_end, g_bend = np.zeros(6), np.zeros(6), np.zeros(6)
     for tau, g in zip(taus, pose_grads):
-        xi = (1.0 - tau) * np.asarray(d_start, dtype=np.float64) + tau * np.asarray(d_end, dtype=np.float64)
-        j_right = se3_right_jacobian(xi)
-        g_xi = j_right.T @ (adjoint(virtual_pose(base, d_start, d_end, tau)).T @ np.asarray(g, dtype=np.float64))
+        xi = exposure_twist(d_start, d_end, tau, bend)
+        g_xi = se3_right_jacobian(xi).T @ (adjoint(base @ se3_exp(xi)).T @ np.asarray(g, dtype=np.float64))
         g_start += (1.0 - tau) * g_xi
         g_end += tau * g_xi
-    return g_start, g_end
+        g_bend += 4.0 * tau * (1.0 - tau) * g_xi
+    return g_start, g_end, g_bend
 
 
 def median_depth(depth: np.ndarray, default: float = 1.0) -> float:

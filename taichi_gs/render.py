@@ -50,7 +50,7 @@ Stage 3 (k virtual views of one blurred frame)::
     for j, v in enumerate(views):
         rast.backward(gs, v, d_rgb=g_view, pose_into=rows.row(j))   # the pose gradient stays on the device
     pose_grads = rast.pose_gradients(values.read()["poses"])  # one read; None: a view overflowed, run again
-    g_s, g_e = exposure_pose_gradients(T, d_s, d_e, taus, pose_grads)   # from geometry.py
+    g_s, g_e, _ = exposure_pose_gradients(T, d_s, d_e, taus, pose_grads)   # from geometry.py
     adam.step()
 
 Conventions: ``K`` uses the rasterizer's pixel centres (pixel u samples image coordinate u + 0.5;

@@ -368,26 +368,28 @@ def test_cuda_backend_matches() -> None:
 
 
 def test_exposure_pose_gradients_chain_virtual_views() -> None:
-    """Blur of k virtual views: the chained pose gradients match finite differences of the offsets."""
+    """Blur of k virtual views along a straight and [ours] a bent exposure: the chained pose gradients of the start,
+    end and bend offsets match finite differences."""
     from taichi_gs.geometry import exposure_pose_gradients, virtual_pose
 
     scene = make_scene(9, n=30, n_sh=1)
     loss = LossF64(scene)
     d_start = np.array([0.02, -0.01, 0.01, 0.01, -0.02, 0.005])
     d_end = np.array([-0.015, 0.02, 0.0, -0.01, 0.015, 0.01])
-    taus = np.linspace(0.0, 1.0, 3)
+    taus = np.linspace(0.0, 1.0, 4)
+    for bend in (None, np.array([0.004, 0.006, -0.003, -0.005, 0.002, 0.004])):
+        def blurred_loss(ds, de, b):
+            return sum(loss(scene, virtual_pose(POSE, ds, de, tau, b)) for tau in taus) / len(taus)
 
-    def blurred_loss(ds, de):
-        return sum(loss(scene, virtual_pose(POSE, ds, de, tau)) for tau in taus) / len(taus)
-
-    grads = [loss.gradients(scene, virtual_pose(POSE, d_start, d_end, tau))[1] / len(taus) for tau in taus]
-    g_start, g_end = exposure_pose_gradients(POSE, d_start, d_end, taus, grads)
-    h = 1e-6
-    for analytic, which in ((g_start, 0), (g_end, 1)):
-        numeric = []
-        for e in np.eye(6):
-            shift = [np.zeros(6), np.zeros(6)]
-            shift[which] = h * e
-            numeric.append((blurred_loss(d_start + shift[0], d_end + shift[1])
-                            - blurred_loss(d_start - shift[0], d_end - shift[1])) / (2 * h))
-        assert relative_errors(analytic, np.array(numeric)).max() < 1e-5
+        grads = [loss.gradients(scene, virtual_pose(POSE, d_start, d_end, tau, bend))[1] / len(taus) for tau in taus]
+        analytic = exposure_pose_gradients(POSE, d_start, d_end, taus, grads, bend)
+        h = 1e-6
+        at = [d_start, d_end, np.zeros(6) if bend is None else bend]
+        for which in range(3):
+            numeric = []
+            for e in np.eye(6):
+                up, down = [a.copy() for a in at], [a.copy() for a in at]
+                up[which] += h * e
+                down[which] -= h * e
+                numeric.append((blurred_loss(*up) - blurred_loss(*down)) / (2 * h))
+            assert relative_errors(analytic[which], np.array(numeric)).max() < 1e-5

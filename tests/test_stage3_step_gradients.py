@@ -179,29 +179,33 @@ def test_stage3_step_gradients_match_finite_differences(problem):
 
 
 def test_the_depth_instant_steps_gradients_match_finite_differences(problem):
-    """[ours] ``depth_instant_step``: the masked depth L1 of a render at the mid-exposure pose moved by a twist,
-    checked against central differences of that loss written here from float64 renders."""
+    """[ours] ``depth_instant_step``: the masked depth L1 of a render at the mid-exposure pose (of an exposure bowed by
+    a bend) moved by a twist, checked against central differences of that loss written here from float64 renders."""
     splats, _, depth = problem
     model = _f64_blur_scene(splats)
     shift = np.array([0.01, -0.02, 0.015, -0.01, 0.02, 0.005])
-    loss_value, g_start, g_end = model.depth_instant_step(depth, BASE, D_START, D_END, shift, LAMBDA_DEPTH)
+    bend = np.array([0.004, 0.003, -0.002, 0.003, -0.004, 0.002])
+    loss_value, g_start, g_end, g_bend = model.depth_instant_step(depth, BASE, D_START, D_END, shift, LAMBDA_DEPTH,
+                                                                  bend)
     valid = depth > 0
 
-    def loss(d_start=D_START, d_end=D_END) -> float:
-        pose = BASE @ se3_exp(0.5 * (d_start + d_end) + shift)
+    def loss(d_start=D_START, d_end=D_END, b=bend) -> float:
+        pose = BASE @ se3_exp(0.5 * (d_start + d_end) + shift + b)  # 4 tau (1 - tau) = 1 at mid-exposure
         rendered = model.rasterizer.forward(model.gaussians, Camera(raster_intrinsics(K), pose, WIDTH, HEIGHT),
                                             with_colour=False).depth.to_numpy()
         return LAMBDA_DEPTH * np.abs(rendered - depth)[valid].sum() / valid.sum()
 
     assert loss_value == pytest.approx(loss(), rel=1e-9) and loss_value > 0.01
-    for which, analytic in (("d_start", g_start), ("d_end", g_end)):
+    moved = {"d_start": lambda h, e: loss(d_start=D_START + h * e), "d_end": lambda h, e: loss(d_end=D_END + h * e),
+             "bend": lambda h, e: loss(b=bend + h * e)}
+    for which, analytic in (("d_start", g_start), ("d_end", g_end), ("bend", g_bend)):
         scale = float(np.abs(analytic).max())
         assert scale > 0
         for c in range(6):
             e = np.eye(6)[c]
 
             def g(h, e=e, which=which):
-                return loss(d_start=D_START + h * e) if which == "d_start" else loss(d_end=D_END + h * e)
+                return moved[which](h, e)
 
             assert _fd_error(float(analytic[c]), g, scale) < 1e-4, (which, c)
 

@@ -5,6 +5,7 @@ frame's exposure offsets to its blurred input moves a deliberately wrong exposur
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -59,7 +60,7 @@ def test_refinement_recovers_the_exposure_with_the_scene_frozen(seed):
 
     params, t = model.arrays(), model.store.adam.t
     stats = model.density.grad_sum.copy(), model.density.grad_count.copy()
-    refined, colour = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
+    refined, colour, _ = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
 
     assert _error(refined) < 0.1 * _error(start), (_error(start), _error(refined))
     mid = virtual_pose(BASE, *refined, 0.5)
@@ -101,7 +102,7 @@ def test_a_fit_on_frozen_anchors_recovers_the_exposure_as_the_rendered_fit(seed,
         config = DeblurConfig(k=K_VIEWS, test_pose_iterations=60, test_fit="rprop", lr_test_pose=2e-3,
                               lambda_dssim=0.2, warp_views=True, test_fit_refresh_px=refresh_px)
         model = BlurScene(_textured_scene(seed), K, WIDTH, HEIGHT, warp_margin=deblur.warp_margin(config))
-        refined, _ = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
+        refined, _, _ = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
         error[refresh_px] = _error(refined)
         residual[refresh_px] = np.abs(model.render_blurred(BASE, *refined, K_VIEWS) - blurred).mean()
     assert len(made) == 1 and 1 <= made[0].renders <= 60 // 4, made[0].renders  # none made when refresh_px is 0
@@ -118,7 +119,7 @@ def test_rprop_fits_the_blur_in_fewer_steps_than_adam(seed):
     residual, mid_error = {}, {}
     for fit in ("adam", "rprop"):
         config = DeblurConfig(k=K_VIEWS, test_pose_iterations=20, lr_test_pose=2e-3, lambda_dssim=0.2, test_fit=fit)
-        refined, _ = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
+        refined, _, _ = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
         residual[fit] = np.abs(model.render_blurred(BASE, *refined, K_VIEWS) - blurred).mean()
         mid_error[fit] = np.linalg.norm(virtual_pose(BASE, *refined, 0.5)[:3, 3] - true_mid[:3, 3])
     assert residual["rprop"] < 0.5 * residual["adam"], residual
@@ -131,7 +132,7 @@ def test_rprop_fit_with_a_zero_colour_rate_keeps_the_colour():
     model, _, frames, start = _held_out_frame(0)
     config = DeblurConfig(k=K_VIEWS, test_pose_iterations=3, lr_test_pose=2e-3, test_fit="rprop",
                           colour_affine=True, lr_colour_affine=0.0)
-    refined, colour = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
+    refined, colour, _ = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
     np.testing.assert_array_equal(colour, np.eye(3, 4))
     assert not np.array_equal(refined, start)
 
@@ -164,7 +165,7 @@ def test_the_depth_term_pins_the_exposure_at_the_instant_its_depth_shows(seed):
         config = DeblurConfig(k=K_VIEWS, test_pose_iterations=60, test_fit="rprop", lr_test_pose=2e-3,
                               lambda_dssim=0.2, test_fit_lambda_depth=1.0)
         moments = DepthMoments(VELOCITY[None], np.array([offset]))
-        refined, _ = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config, None, moments)
+        refined, _, _ = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config, None, moments)
         error[name] = _error(refined)
     assert error["instant"] < 0.5 * error["mid"] and error["instant"] < 0.5 * _error(start), error
 
@@ -205,3 +206,56 @@ def test_held_out_frames_start_where_their_training_neighbours_moved(tmp_path, f
         assert np.linalg.norm(shift) > 1e-5  # the neighbours did learn a correction
         expected = base[frame] @ se3_exp(shift) if from_neighbours else base[frame]
         np.testing.assert_allclose(result.mid_poses[frame], expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_bowed_fit_finds_the_middle_of_a_curved_exposure(seed):
+    """[ours] ``test_fit_bend``: a held-out frame blurred along a curved path (bowed across its motion by a third of
+    its travel) is fitted with its mid-exposure camera at half the distance to the truth's, or less, that a straight exposure
+    gets to."""
+    model = BlurScene(_textured_scene(seed), K, WIDTH, HEIGHT)
+    d_true = 3.0 * TRUE  # ~9 px of travel
+    bow = np.array([0.02, 0.04, 0.0, 0.0, 0.0, 0.0])  # across the motion: ~3 px at mid-exposure
+    blurred = model.render_blurred(BASE, d_true[0], d_true[1], 9, bend=bow)
+    _, depth = model.render(BASE)
+    frames = _Frames([blurred], [depth], np.array([float(np.median(depth[depth > 0]))]), K)
+    truth = virtual_pose(BASE, *d_true, 0.5, bow)
+    start = 0.5 * d_true
+    errors = {}
+    for share in (0.0, 0.5):
+        config = DeblurConfig(k=9, test_pose_iterations=80, test_fit="rprop", lr_test_pose=2e-3, lambda_dssim=0.2,
+                              test_fit_bend=share)
+        refined, _, bend = _refine_test_exposure(model, frames, BASE, start.copy(), start, 0, config)
+        assert share > 0 or not bend.any()
+        errors[share] = np.linalg.norm(virtual_pose(BASE, *refined, 0.5, bend)[:3, 3] - truth[:3, 3])
+    assert errors[0.5] < 0.5 * errors[0.0], errors
+
+
+def test_a_bowed_held_out_fit_reaches_the_trajectory_and_the_sharp_render(tmp_path):
+    """[ours] ``test_fit_bend`` end to end: a held-out frame's bowed mid-exposure pose is the one stage 3 reports
+    and the one its sharp render shows (the render written equals a render at the reported pose)."""
+    from taichi_gs.io.sequence import read_color
+    from taichi_gs.io.ply import read_splats
+    from taichi_gs.standins import synthetic_refine_outputs
+
+    synth = pytest.importorskip("taichi_gs.synth")
+    clip = synth.SynthConfig(width=64, height=48, frames=6, trajectory="handheld", blur="extreme", seed=2)
+    sequence, run = synthetic_refine_outputs(tmp_path, clip, voxel=0.06)
+    config = dataclasses.replace(PRESETS["fast"], iterations_per_view=0, k=3, iterations=30, densify_from=10,
+                                 densify_until=20, densify_every=10, exposure_from=0, test_pose_iterations=4,
+                                 test_fit_bend=0.5, colour_affine=False)
+    result = run_deblur(sequence, run, config)
+    frame = result.test[0]
+    stage = run / "deblur"
+    frame_shift = json.loads((stage / "frame.json").read_text()) if (stage / "frame.json").is_file() else None
+    base, _ = load_stage2(run, sequence.timestamps)
+    if frame_shift is not None:
+        base[:, :3, 3] = frame_shift["scale"] * base[:, :3, 3] + np.array(frame_shift["translation_m"])
+    ends = result.exposure[frame]
+    straight = virtual_pose(base[frame], se3_log(invert(base[frame]) @ ends[0]),
+                            se3_log(invert(base[frame]) @ ends[1]), 0.5)
+    assert np.linalg.norm(result.mid_poses[frame][:3, 3] - straight[:3, 3]) > 1e-6  # the fit bowed it
+    model = BlurScene(read_splats(stage / "splats.ply"), sequence.K(), 64, 48)
+    render = np.clip(model.render(result.mid_poses[frame])[0], 0, 1)
+    written = read_color(stage / "renders" / "sharp" / f"{sequence.names[frame]}.png")
+    assert np.abs(render - written).max() < 1.5 / 255  # the same pose, up to 8-bit rounding

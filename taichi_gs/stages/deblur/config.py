@@ -87,6 +87,11 @@ class DeblurConfig:
     # at the pose that depth shows (exposures.DepthMoments: mid-exposure's, moved by the frame's velocity times the
     # depth's own time offset where the input gives one); 0: colour alone (the method's)
     test_fit_lambda_depth: float = setting(0.0, NON_NEGATIVE)
+    # [ours] a held-out fit also bows its exposure's path (geometry.exposure_twist: 4 tau (1 - tau) bend, largest at
+    # mid-exposure): a hand-held camera's path over a long exposure curves, and the centre frame lies on the curve,
+    # not on the straight chord between the exposure's ends. The bow's image travel is kept to at most this share
+    # of the exposure's (exposures.capped_bend); 0: a straight exposure (the method's)
+    test_fit_bend: float = setting(0.0, NON_NEGATIVE)
     resolution_scale: int = setting(1, COUNT)  # train at 1/scale of the input resolution; outputs are full size
     seed: int = setting(0, ANY)
     checkpoint_every: int = setting(1000, COUNT)

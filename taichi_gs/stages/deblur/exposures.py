@@ -39,6 +39,14 @@ def exposure_px(d_start: np.ndarray, d_end: np.ndarray, focal: float, depth: flo
     return float(focal * (np.linalg.norm(delta[:3]) / depth + np.linalg.norm(delta[3:])))
 
 
+def capped_bend(bend: np.ndarray, d: np.ndarray, share: float, focal: float, depth: float) -> np.ndarray:
+    """[ours] ``bend`` (:func:`geometry.exposure_twist`) scaled down, where it moves the image (:func:`exposure_px`
+    at ``focal`` and ``depth``) more than ``share`` of the travel of the exposure ``d`` (start, end) does: a
+    path's bow stays small against its length."""
+    size, limit = exposure_px(np.zeros(6), bend, focal, depth), share * exposure_px(d[0], d[1], focal, depth)
+    return bend * (limit / size) if size > limit else bend
+
+
 def keep_open(d: np.ndarray, fallback: np.ndarray, min_px: float, focal: float, depth: float) -> np.ndarray:
     """Re-open an exposure that closed below ``min_px`` on the image: stretch d_e - d_s about its
     middle (or, if it vanished, take ``fallback``'s direction) to ``min_px``."""
@@ -91,7 +99,8 @@ def colour_step(adam: RowAdam, M: np.ndarray, grad: np.ndarray, frame: int, conf
 class Exposures:
     """Every frame's exposure offsets (N, 2, 6) from its pose in ``poses``, starting at ``start``
     (:func:`initial_offsets`), and its colour transform (N, 3, 4; identity unless ``colour_affine``
-    trains it), each with a per-frame Adam."""
+    trains it), each with a per-frame Adam; [ours] ``bends`` (N, 6; :func:`geometry.exposure_twist`), zero but
+    where a held-out fit bowed its exposure (``test_fit_bend``)."""
 
     def __init__(self, poses: np.ndarray, config: DeblurConfig):
         self.poses = poses
@@ -99,6 +108,7 @@ class Exposures:
         self.start = initial_offsets(poses, config.initial_exposure_fraction)
         self.offsets = self.start.copy()
         self.colours = np.repeat(IDENTITY[None], len(poses), axis=0)
+        self.bends = np.zeros((len(poses), 6))
         self._exposure_adam = RowAdam(len(poses), (2, 6))
         self._colour_adam = RowAdam(len(poses), (3, 4))
 
@@ -128,7 +138,7 @@ class Exposures:
 
     def mid_pose(self, frame: int) -> np.ndarray:
         """``frame``'s camera-to-world at mid-exposure."""
-        return virtual_pose(self.poses[frame], *self.offsets[frame], 0.5)
+        return virtual_pose(self.poses[frame], *self.offsets[frame], 0.5, self.bends[frame])
 
     def mid_poses(self, frames: list[int] | None = None) -> list[np.ndarray]:
         """The mid-exposure poses of ``frames`` (None: every frame)."""

@@ -51,6 +51,7 @@ class BlurStep:
     grad_start: np.ndarray
     grad_end: np.ndarray
     grad_colour: np.ndarray | None = None  # (3, 4) when a colour transform was given
+    grad_bend: np.ndarray | None = None  # [ours] (6,) the exposure's bend (:func:`geometry.exposure_twist`)
 
 
 def loss_pixels(sourced: np.ndarray | None, dtype) -> tuple[losses.PixelWeights | None, losses.PixelWeights | None]:
@@ -210,7 +211,7 @@ class BlurScene(OnStore):
              k: int, lambda_dssim: float, lambda_depth: float, rates: Rates | None,
              colour: np.ndarray | None = None, anchors: int = 0, fallback_depth: float | None = None,
              observe: bool = True, frozen: FrozenAnchors | None = None,
-             readout_motion: np.ndarray | None = None) -> BlurStep:
+             readout_motion: np.ndarray | None = None, bend: np.ndarray | None = None) -> BlurStep:
         """Render the frame's k virtual views, average them, apply the frame's affine ``colour``
         transform (3 x 4; None: identity), take (1 - l_B) L1 + l_B D-SSIM against ``frame`` plus
         ``lambda_depth`` times the masked depth L1 of the mid view against ``depth``, back-propagate,
@@ -223,7 +224,8 @@ class BlurScene(OnStore):
         renders across steps (:class:`FrozenAnchors`); the Gaussians then get no gradients. [ours]
         ``readout_motion`` (with anchors): a rolling shutter, the camera's motion while the rows are read
         (:func:`shutter_rows`); each virtual view's rows are warped from the anchors at their own poses. The
-        anchors and the mid view's depth loss stay global-shutter renders."""
+        anchors and the mid view's depth loss stay global-shutter renders. [ours] ``bend``: the exposure's path
+        bowed at its middle (:func:`geometry.exposure_twist`; None: straight), its gradient in ``grad_bend``."""
         if frozen is not None and (rates is not None or anchors < 1 or lambda_depth > 0):
             raise ValueError("frozen anchors need a frozen scene (rates None), anchors and no depth term")
         rows = self.shutter_rows(readout_motion)
@@ -233,23 +235,24 @@ class BlurScene(OnStore):
         fallback = median_depth(depth) if anchors > 0 and fallback_depth is None else fallback_depth
         while True:  # again when a render's tile slots overflowed its buffers (they are grown: it fits the next time)
             exposure = self._forward_backward(depth, base, d_start, d_end, exposure_taus(k), lambda_dssim,
-                                              lambda_depth, colour, anchors, fallback, frozen, rows)
+                                              lambda_depth, colour, anchors, fallback, frozen, rows, bend)
             values = self.step_values.read()  # the step's one host read
             gradients = exposure.pose_gradients(values)
             if gradients is not None:
                 break
         grad_taus, pose_grads = gradients
         grad_colour = None if colour is None else affine.matrix_gradient(values["colour"])
-        g_start, g_end = exposure_pose_gradients(base, d_start, d_end, grad_taus, pose_grads)
+        g_start, g_end, g_bend = exposure_pose_gradients(base, d_start, d_end, grad_taus, pose_grads, bend)
         if rates is not None:
             if observe:
-                self.density.observe(self.store, virtual_pose(base, d_start, d_end, exposure.mid_tau), self.K[0, 0])
+                self.density.observe(self.store, virtual_pose(base, d_start, d_end, exposure.mid_tau, bend),
+                                     self.K[0, 0])
             self.store.step(vars(rates))
         return BlurStep({"l1": values["l1"], "dssim": values["dssim"], "depth": values.get("depth", 0.0)},
-                        float(-10 * np.log10(max(values["mse"], 1e-12))), g_start, g_end, grad_colour)
+                        float(-10 * np.log10(max(values["mse"], 1e-12))), g_start, g_end, grad_colour, g_bend)
 
     def _forward_backward(self, depth, base, d_start, d_end, taus, lambda_dssim, lambda_depth, colour, anchors,
-                          fallback, frozen, rows) -> _RenderedExposure | _WarpedExposure:
+                          fallback, frozen, rows, bend=None) -> _RenderedExposure | _WarpedExposure:
         """One pass of :meth:`step` up to the Gaussians' gradients, its renders deferred, its loss values, the
         colour transform's gradient rows ("colour") and the poses' gradient rows left in :attr:`step_values`;
         returns the exposure, whose ``pose_gradients`` of the values read says whether a render's tile slots
@@ -258,9 +261,9 @@ class BlurScene(OnStore):
         values.clear()
         if anchors > 0:
             exposure = _WarpedExposure(self, base, d_start, d_end, taus, anchors, fallback, frozen, rows,
-                                       deferred=True)
+                                       deferred=True, bend=bend)
         else:
-            exposure = _RenderedExposure(self, base, d_start, d_end, taus, deferred=True)
+            exposure = _RenderedExposure(self, base, d_start, d_end, taus, deferred=True, bend=bend)
         predicted, grad_predicted = self.blurred, self.grad_blur
         if colour is not None:  # the losses add into grad_compensated; the transform's backward writes grad_blur
             affine.forward(self.blurred, colour, self.compensated)
@@ -322,13 +325,15 @@ class BlurScene(OnStore):
         return mass
 
     def depth_instant_step(self, depth: np.ndarray, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray,
-                           shift: np.ndarray, weight: float) -> tuple[float, np.ndarray, np.ndarray]:
+                           shift: np.ndarray, weight: float, bend: np.ndarray | None = None
+                           ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """[ours] ``weight`` times the masked depth L1 against ``depth`` of a depth-and-alpha render at the pose the
-        frame's depth shows: its mid-exposure pose moved by the twist ``shift`` (``exposures.DepthMoments``), and
-        its gradients with respect to the exposure's start and end offsets: (loss, dL/d d_start, dL/d d_end). Its
-        Gaussian gradients are added to theirs (a held-out fit leaves them unused)."""
+        frame's depth shows: its mid-exposure pose (with the exposure's ``bend``) moved by the twist ``shift``
+        (``exposures.DepthMoments``), and its gradients with respect to the exposure's start and end offsets and its
+        bend: (loss, dL/d d_start, dL/d d_end, dL/d bend). Its Gaussian gradients are added to theirs (a held-out
+        fit leaves them unused)."""
         d_start, d_end = np.asarray(d_start) + shift, np.asarray(d_end) + shift  # their middle: the depth's pose
-        camera = self.camera(virtual_pose(base, d_start, d_end, 0.5))
+        camera = self.camera(virtual_pose(base, d_start, d_end, 0.5, bend))
         view = self.rasterizer.forward(self.gaussians, camera, view=DEPTH_INSTANT_VIEW, with_colour=False)
         host_copy.write(self.depth_target, depth)
         self.grad_depth.fill(0.0)
@@ -338,8 +343,8 @@ class BlurScene(OnStore):
         pose = values.rows("pose", 1, POSE_COLUMNS)
         self.rasterizer.backward(self.gaussians, view, d_depth=self.grad_depth, pose_into=pose)  # a checked render
         read = values.read()
-        g_start, g_end = exposure_pose_gradients(base, d_start, d_end, [0.5], [read["pose"][0, :6]])
-        return weight * read["depth"], g_start, g_end  # the kernel gives the unweighted mean
+        g_start, g_end, g_bend = exposure_pose_gradients(base, d_start, d_end, [0.5], [read["pose"][0, :6]], bend)
+        return weight * read["depth"], g_start, g_end, g_bend  # the kernel gives the unweighted mean
 
     def render(self, cam_to_world: np.ndarray, min_alpha: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
         """Sharp colour (H, W, 3) and depth (H, W) at one pose, as NumPy; the depth is the blended z
@@ -365,18 +370,19 @@ class BlurScene(OnStore):
         self.density.appended(m)
 
     def render_blurred(self, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, k: int,
-                       readout_motion: np.ndarray | None = None, fallback_depth: float = 1.0) -> np.ndarray:
-        """The k-view average (H, W, 3) over an exposure, as NumPy. [ours] With a rolling shutter
-        (``readout_motion``, see :meth:`step`; the scene needs a ``warp_margin``) each view's rows are warped
-        from a render at the view's pose (``fallback_depth`` where that render has no surface)."""
+                       readout_motion: np.ndarray | None = None, fallback_depth: float = 1.0,
+                       bend: np.ndarray | None = None) -> np.ndarray:
+        """The k-view average (H, W, 3) over an exposure (bowed by ``bend``, see :meth:`step`), as NumPy. [ours]
+        With a rolling shutter (``readout_motion``, see :meth:`step`; the scene needs a ``warp_margin``) each view's
+        rows are warped from a render at the view's pose (``fallback_depth`` where that render has no surface)."""
         taus = exposure_taus(k)
         rows = self.shutter_rows(readout_motion)
         if rows is not None and self.warp_margin < 1:
             raise ValueError("a rolling shutter's re-blurred render needs a scene with a warp_margin")
         if rows is None:
-            _RenderedExposure(self, base, d_start, d_end, taus)
+            _RenderedExposure(self, base, d_start, d_end, taus, bend=bend)
         else:
-            _WarpedExposure(self, base, d_start, d_end, taus, k, fallback_depth, rows=rows)
+            _WarpedExposure(self, base, d_start, d_end, taus, k, fallback_depth, rows=rows, bend=bend)
         return host_copy.read(self.blurred).astype(np.float32)
 
     def order_in_space(self) -> None:
@@ -411,9 +417,10 @@ class _RenderedExposure:
     """The method's blur: all k virtual views of one exposure rendered, their mean in ``scene.blurred``."""
 
     def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray,
-                 deferred: bool = False):
+                 deferred: bool = False, bend: np.ndarray | None = None):
         self.scene, self.taus = scene, taus
-        self.views = [scene.rasterizer.forward(scene.gaussians, scene.camera(virtual_pose(base, d_start, d_end, tau)),
+        self.views = [scene.rasterizer.forward(scene.gaussians,
+                                               scene.camera(virtual_pose(base, d_start, d_end, tau, bend)),
                                                view=j, deferred=deferred) for j, tau in enumerate(taus)]
         blur.average([v.rgb for v in self.views], scene.blurred)
         mid = int(np.argmin(np.abs(taus - 0.5)))
@@ -450,12 +457,12 @@ class _WarpedExposure:
 
     def __init__(self, scene: BlurScene, base: np.ndarray, d_start: np.ndarray, d_end: np.ndarray, taus: np.ndarray,
                  anchors: int, fallback_depth: float, frozen: FrozenAnchors | None = None,
-                 rows: np.ndarray | None = None, deferred: bool = False):
+                 rows: np.ndarray | None = None, deferred: bool = False, bend: np.ndarray | None = None):
         self.scene, self.taus, self.frozen = scene, taus, frozen
         self.groups = anchor_groups(len(taus), anchors)
         self.anchor_taus = np.array([float(np.mean(taus[g])) for g in self.groups])
-        poses = [virtual_pose(base, d_start, d_end, tau) for tau in taus]
-        wanted = [virtual_pose(base, d_start, d_end, tau) for tau in self.anchor_taus]
+        poses = [virtual_pose(base, d_start, d_end, tau, bend) for tau in taus]
+        wanted = [virtual_pose(base, d_start, d_end, tau, bend) for tau in self.anchor_taus]
         if frozen is None:
             rast, gs = scene.rasterizer, scene.gaussians
             self.anchor_poses = wanted

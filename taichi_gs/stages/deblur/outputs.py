@@ -80,8 +80,8 @@ def _write_outputs(stage_dir: Path, sequence: Sequence, splats: Splats, exposure
         write_text(stage_dir / "colour_affine.json", jsonout.dumps(
             {"rows": "out = M[:, :3] @ rgb + M[:, 3]", "frames": {n: colours[i].round(6).tolist()
                                                                   for i, n in enumerate(sequence.names)}}) + "\n")
-    _write_renders(stage_dir, sequence, splats, exposures.poses, exposures.offsets, config, result.test, colours,
-                   shutter)
+    _write_renders(stage_dir, sequence, splats, exposures.poses, exposures.offsets, exposures.bends, config,
+                   result.test, colours, shutter)
     history = result.loss_history
     if history:
         it = np.array([h["iteration"] for h in history], dtype=float)
@@ -100,8 +100,10 @@ def _format_exposure(timestamps: np.ndarray, exposure: np.ndarray) -> str:
 
 
 def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: np.ndarray, offsets: np.ndarray,
-                   config: DeblurConfig, test: list[int], colours: np.ndarray | None, shutter: _Shutter) -> None:
-    """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame, and a grid;
+                   bends: np.ndarray, config: DeblurConfig, test: list[int], colours: np.ndarray | None,
+                   shutter: _Shutter) -> None:
+    """Full-resolution sharp mid-exposure, re-blurred and depth renders of every frame (exposures bowed by their
+    ``bends``), and a grid;
     with per-frame ``colours`` the colour renders are in each frame's own colour (its transform applied).
     The sharp renders are global-shutter; the re-blurred ones read their rows as ``shutter`` does, and with a
     rolling shutter ``renders/as_read/`` holds the sharp render read so (each row at its mid-exposure pose)."""
@@ -115,13 +117,13 @@ def _write_renders(stage_dir: Path, sequence: Sequence, splats: Splats, poses: n
     has_truth = sequence.sharp_paths is not None
     grid_frames = set(_grid_frames(len(sequence), test, config.grid_frames))
     for i, name in enumerate(sequence.names):
-        sharp, depth = full.render(virtual_pose(poses[i], *offsets[i], 0.5))
+        sharp, depth = full.render(virtual_pose(poses[i], *offsets[i], 0.5, bends[i]))
         reblurred = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], config.k, shutter.motions[i],
-                                        shutter.median_depth[i])
+                                        shutter.median_depth[i], bends[i])
         as_read = None
         if shutter.motions[i].any():  # the sharp render as the rolling shutter reads it: rows at their own poses
             as_read = full.render_blurred(poses[i], offsets[i, 0], offsets[i, 1], 1, shutter.motions[i],
-                                          shutter.median_depth[i])
+                                          shutter.median_depth[i], bends[i])
         if colours is not None:
             sharp, reblurred = apply_affine(sharp, colours[i]), apply_affine(reblurred, colours[i])
             as_read = None if as_read is None else apply_affine(as_read, colours[i])

@@ -38,7 +38,16 @@ from .config import PRESETS, DeblurConfig, scaled_schedule, with_headroom
 from .density import density_schedule, fill_uncovered
 from .density_control import DensitySchedule, footprint_limit
 from .depth_instant import colour_instant_motions
-from .exposures import DepthMoments, Exposures, colour_step, exposure_px, keep_open, shrink_mid, velocity_twists
+from .exposures import (
+    DepthMoments,
+    Exposures,
+    capped_bend,
+    colour_step,
+    exposure_px,
+    keep_open,
+    shrink_mid,
+    velocity_twists,
+)
 from .frames import (
     _Frames,
     _load_frames,
@@ -148,7 +157,7 @@ def run_deblur(
     for frame in test:
         if config.test_fit_from_neighbours:
             exposures.start_from_neighbours(frame, train)
-        exposures.offsets[frame], exposures.colours[frame] = _refine_test_exposure(
+        exposures.offsets[frame], exposures.colours[frame], exposures.bends[frame] = _refine_test_exposure(
             model, frames, poses[frame], exposures.offsets[frame], exposures.start[frame], frame, config,
             shutter.motions[frame], depth_moments)
     warnings = _step_warnings(exposures.offsets, train, frames, config)
@@ -156,6 +165,7 @@ def run_deblur(
     if config.keep_frame:
         splats, exposures.poses, exposures.offsets, shift = back_to_stage_2s_frame(
             splats, poses, exposures.offsets, train, config.keep_frame_scale_error)
+        exposures.bends[:, :3] *= shift.scale  # a twist's translation scales with the world, as the offsets' do
     result = DeblurResult(
         mid_poses=np.stack(exposures.mid_poses()), exposure=exposures.ends(),
         train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
@@ -287,28 +297,31 @@ def _rprop_step(shape: tuple[int, ...], rate: float) -> Callable[[np.ndarray, np
     return Rprop(shape, rate).step if rate > 0 else (lambda value, grad: value)
 
 
-def _test_fit_steps(config: DeblurConfig) -> tuple[Callable[[np.ndarray, np.ndarray], np.ndarray],
-                                                    Callable[[np.ndarray, np.ndarray], np.ndarray]]:
-    """The held-out fit's (exposure step, colour step), each ``(value, loss gradient) -> value``, by
-    ``config.test_fit``; the colour step adds the identity pull."""
+def _test_fit_steps(config: DeblurConfig) -> tuple[Callable[[np.ndarray, np.ndarray], np.ndarray], ...]:
+    """The held-out fit's (exposure step, bend step, colour step), each ``(value, loss gradient) -> value``, by
+    ``config.test_fit``; the bend steps at the exposure's rate, the colour step adds the identity pull."""
     if config.test_fit == "rprop":
-        exposure, colour = _rprop_step((2, 6), config.lr_test_pose), _rprop_step((3, 4), config.lr_colour_affine)
-        return exposure, lambda M, grad: colour(M, grad + identity_penalty(M, config.lambda_colour_affine)[1])
-    exposure_adam, colour_adam = RowAdam(1, (2, 6)), RowAdam(1, (3, 4))
+        exposure, bend = _rprop_step((2, 6), config.lr_test_pose), _rprop_step((6,), config.lr_test_pose)
+        colour = _rprop_step((3, 4), config.lr_colour_affine)
+        return exposure, bend, lambda M, grad: colour(M, grad + identity_penalty(M, config.lambda_colour_affine)[1])
+    exposure_adam, bend_adam, colour_adam = RowAdam(1, (2, 6)), RowAdam(1, (6,)), RowAdam(1, (3, 4))
     return (lambda d, grad: exposure_adam.step(0, d, grad, config.lr_test_pose),
+            lambda b, grad: bend_adam.step(0, b, grad, config.lr_test_pose),
             lambda M, grad: colour_step(colour_adam, M, grad, 0, config))
 
 
 @profiling.timed("test-view exposure fits")
 def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d: np.ndarray, fallback: np.ndarray,
                           frame: int, config: DeblurConfig, readout_motion: np.ndarray | None = None,
-                          depth_moments: DepthMoments | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Fit a held-out frame's exposure offsets (and, with ``colour_affine``, its colour transform),
-    scene frozen, by re-blurring against its blurred input (``config.test_fit``: Adam or Rprop); a rolling
-    shutter's ``readout_motion`` as in :meth:`BlurScene.step`. With ``test_fit_lambda_depth``, the frame's depth
-    pins the pose it shows (``depth_moments``; None: mid-exposure's)."""
-    exposure_fit, colour_fit = _test_fit_steps(config)
-    colour = IDENTITY.copy()
+                          depth_moments: DepthMoments | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fit a held-out frame's exposure offsets (and, with ``colour_affine``, its colour transform; [ours] with
+    ``test_fit_bend``, its path's bow, :func:`capped_bend`), scene frozen, by re-blurring against its blurred input
+    (``config.test_fit``: Adam or Rprop); a rolling shutter's ``readout_motion`` as in :meth:`BlurScene.step`.
+    With ``test_fit_lambda_depth``, the frame's depth pins the pose it shows (``depth_moments``; None:
+    mid-exposure's). Returns (offsets, colour transform, bend)."""
+    exposure_fit, bend_fit, colour_fit = _test_fit_steps(config)
+    colour, bend = IDENTITY.copy(), np.zeros(6)
+    fitted_bend = bend if config.test_fit_bend > 0 else None
     frozen = None
     if config.warp_views and config.test_fit_refresh_px > 0:
         frozen = FrozenAnchors(config.test_fit_refresh_px, frames.K[0, 0], frames.median_depth[frame])
@@ -319,18 +332,21 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], k,
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
                           anchors=anchors, fallback_depth=frames.median_depth[frame], frozen=frozen,
-                          readout_motion=readout_motion)
-        loss, grad = sum(step.losses.values()), np.stack([step.grad_start, step.grad_end])
+                          readout_motion=readout_motion, bend=fitted_bend)
+        loss, grad, grad_bend = sum(step.losses.values()), np.stack([step.grad_start, step.grad_end]), step.grad_bend
         if config.test_fit_lambda_depth > 0:
-            depth_loss, g_start, g_end = model.depth_instant_step(frames.depths[frame], base, d[0], d[1], shift,
-                                                                  config.test_fit_lambda_depth)
-            loss, grad = loss + depth_loss, grad + np.stack([g_start, g_end])
+            depth_loss, g_start, g_end, g_bend = model.depth_instant_step(
+                frames.depths[frame], base, d[0], d[1], shift, config.test_fit_lambda_depth, fitted_bend)
+            loss, grad, grad_bend = loss + depth_loss, grad + np.stack([g_start, g_end]), grad_bend + g_bend
         guard.check_step(it, loss, grad)
         d = shrink_mid(exposure_fit(d, grad), config.mid_exposure_decay)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
+        if fitted_bend is not None:
+            fitted_bend = capped_bend(bend_fit(fitted_bend, grad_bend), d, config.test_fit_bend, frames.K[0, 0],
+                                      frames.median_depth[frame])
         if config.colour_affine:
             colour = colour_fit(colour, step.grad_colour)
-    return d, colour
+    return d, colour, bend if fitted_bend is None else fitted_bend
 
 
 def _run_stage(context: StageContext) -> StageRun:
