@@ -25,7 +25,7 @@ ADDITIONS = {
         "warp_views": False, "odd_views": False, "keep_frame": False, "mid_exposure_decay": 0.0, "readout_ms": 0.0,
         "camera_readout": False, "test_fit": "adam", "test_fit_from_neighbours": False, "test_fit_refresh_px": 0.0,
         "densify_headroom": 0.0, "initial_exposure_fraction": 0.5, "test_fit_lambda_depth": 0.0,
-        "depth_at_colour_instant": False, "test_fit_bend": 0.0}),
+        "test_fit_bend": 0.0}),
 }
 
 

@@ -233,3 +233,30 @@ def test_stage_3_trains_on_depth_de_skewed_for_its_readout(tmp_path, monkeypatch
     if deskew_depth:
         assert isinstance(depth_source, DeskewedSequence) and depth_source.readout_motions.any()
         assert not np.array_equal(frames.depths[1], sequence.depth(1))
+
+
+def test_coarse_phases_read_depth_as_the_full_resolution_phase_does(tmp_path, monkeypatch):
+    """Coarse-to-fine (``coarse_scale``): every resolution's frames take their depth from the same de-skewed source
+    as the training resolution's (before, a coarse phase read the depth as read)."""
+    from taichi_gs.stages.deblur import frames as deblur_frames
+    from taichi_gs.stages.deblur import run as deblur_stage
+    from taichi_gs.standins import synthetic_refine_outputs
+
+    clip = synth.SynthConfig(width=48, height=32, frames=4, trajectory="handheld", blur="extreme", seed=2)
+    sequence, out = synthetic_refine_outputs(tmp_path, clip, voxel=0.1)
+    sources = []
+    load = deblur_frames._load_frames
+
+    def spy(sequence, scale, sourced, depth_source=None):
+        sources.append((scale, depth_source))
+        return load(sequence, scale, sourced, depth_source)
+
+    monkeypatch.setattr(deblur_stage, "_load_frames", spy)
+    monkeypatch.setattr(deblur_frames, "_load_frames", spy)
+    config = dataclasses.replace(deblur_stage.PRESETS["fast"], iterations_per_view=0, iterations=6, k=3,
+                                 adaptive_k=False, test_pose_iterations=0, holdout_every=0, keep_frame=False,
+                                 readout_ms=25.0, coarse_scale=2, coarse_fraction=0.5, densify_from=100,
+                                 densify_until=100, exposure_from=100)
+    deblur_stage.run_deblur(sequence, out, config)
+    assert {scale for scale, _ in sources} == {1, 2}
+    assert all(isinstance(source, DeskewedSequence) and source is sources[0][1] for _, source in sources)

@@ -183,11 +183,6 @@ class DeblurConfig:
     # global-shutter renders at the mid-exposure pose, meet depth as a global shutter would read it.
     # false: depth as read
     deskew_depth: bool = True
-    # [ours] each training frame's depth moved to its colour's instant before training (depth_instant.moved_depth, by
-    # exposures.DepthMoments' motion: the frame's velocity from stage 2's poses times its depth's time offset), so
-    # the depth loss at the mid-exposure render meets depth seen from there; only depth that the input says was
-    # taken apart from its colour moves (frames.txt's 4th column, TUM's depth stamps). false: depth as taken
-    depth_at_colour_instant: bool = False
 
 
 
@@ -202,8 +197,7 @@ PRESETS = {
                          test_pose_iterations=20, test_fit="rprop", test_fit_refresh_px=1.0,
                          test_fit_from_neighbours=True, spatial_order=True, early_views_fraction=0.3,
                          warp_views=True, odd_views=True, densify_headroom=1.3, keep_frame=True,
-                         initial_exposure_fraction=0.7, camera_readout=True, test_fit_lambda_depth=1.0,
-                         depth_at_colour_instant=True),
+                         initial_exposure_fraction=0.7, camera_readout=True, test_fit_lambda_depth=1.0),
 }
 
 

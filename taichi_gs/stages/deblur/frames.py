@@ -20,7 +20,6 @@ from ...rolling_shutter import DeskewedSequence, readout_skews
 from ...splats import Splats
 from ..schedule import downsample_depth, scaled_intrinsics
 from .config import DeblurConfig
-from .depth_instant import moved_depth
 from .model import BlurScene
 
 
@@ -110,21 +109,16 @@ class _Frames:
 
 
 def _load_frames(sequence: Sequence, scale: int, sourced: np.ndarray | None,
-                 depth_source: Sequence | DeskewedSequence | None = None,
-                 depth_motions: np.ndarray | None = None) -> _Frames:
-    """The frames at 1/``scale`` resolution, depth read from ``depth_source`` (None: ``sequence``) and, with
-    ``depth_motions`` (N, 4, 4), each moved by its frame's motion (:func:`depth_instant.moved_depth`); ``sourced``
+                 depth_source: Sequence | DeskewedSequence | None = None) -> _Frames:
+    """The frames at 1/``scale`` resolution, depth read from ``depth_source`` (None: ``sequence``); ``sourced``
     (full resolution, or None) is shrunk alike, a pixel kept only if its whole block is sourced."""
     colors = [_downsample_color(sequence.color(i), scale) for i in range(len(sequence))]
     h, w = colors[0].shape[:2]
-    K = _area_intrinsics(sequence.K(), scale)
     depth_source = sequence if depth_source is None else depth_source
     depths = [downsample_depth(depth_source.depth(i), scale)[:h, :w] for i in range(len(sequence))]
-    if depth_motions is not None:
-        depths = [d if np.array_equal(m, np.eye(4)) else moved_depth(d, K, m) for d, m in zip(depths, depth_motions)]
     if sourced is not None:
         sourced = _downsample_color(sourced.astype(np.float32), scale) >= SOURCED
-    return _Frames(colors, depths, median_depths(depths), K, sourced)
+    return _Frames(colors, depths, median_depths(depths), _area_intrinsics(sequence.K(), scale), sourced)
 
 
 def loss_mask(sequence: Sequence, config: DeblurConfig) -> np.ndarray | None:
@@ -143,13 +137,12 @@ def _scene_extent(poses: np.ndarray, means: np.ndarray) -> float:
 
 
 def _phase(sequence: Sequence, sourced: np.ndarray | None, model: BlurScene, cache: dict[int, _Frames],
-           scale: int, depth_source: Sequence | DeskewedSequence | None = None,
-           depth_motions: np.ndarray | None = None) -> tuple[_Frames, BlurScene]:
+           scale: int, depth_source: Sequence | DeskewedSequence | None = None) -> tuple[_Frames, BlurScene]:
     """[ours] Coarse-to-fine: the frames at resolution divisor ``scale`` (loaded once, their depth as
     :func:`_load_frames` reads it) and ``model`` moved to that resolution (the same Gaussians, Adam moments and
     densification statistics)."""
     if scale not in cache:
-        cache[scale] = _load_frames(sequence, scale, sourced, depth_source, depth_motions)
+        cache[scale] = _load_frames(sequence, scale, sourced, depth_source)
     frames = cache[scale]
     height, width = frames.colors[0].shape[:2]
     if (model.width, model.height) != (width, height):

@@ -37,7 +37,6 @@ from ..schedule import exp_decay, training_scale, views_for_span
 from .config import PRESETS, DeblurConfig, scaled_schedule, with_headroom
 from .density import density_schedule, fill_uncovered
 from .density_control import DensitySchedule, footprint_limit
-from .depth_instant import colour_instant_motions
 from .exposures import (
     DepthMoments,
     Exposures,
@@ -97,12 +96,6 @@ def run_deblur(
         depth_source = DeskewedSequence(sequence, deskewing_motions(sequence, motions)[0])
     frames = _load_frames(sequence, config.resolution_scale, sourced, depth_source)
     train, test, sharpness = choose_split(frames.colors, config.holdout, config.holdout_every)
-    depth_moments = DepthMoments(velocity_twists(poses, sequence.timestamps), sequence.depth_offsets())
-    depth_motions = None  # [ours] training frames' depth moved to their colour's instant
-    if config.depth_at_colour_instant:
-        depth_motions = colour_instant_motions(depth_moments, train, len(sequence))
-    if depth_motions is not None:
-        frames = _load_frames(sequence, config.resolution_scale, sourced, depth_source, depth_motions)
     config = with_headroom(scaled_schedule(config, len(train)), len(splats))
     splats = with_sh_degree(splats, config.sh_degree)
     extent = _scene_extent(poses, splats.means)
@@ -122,7 +115,7 @@ def run_deblur(
         # sample: the phase's resolution (coarse-to-fine), the frame, and the density schedule in its pixels
         scale = training_scale(it, config.iterations, config.resolution_scale, config.coarse_scale,
                                config.coarse_fraction)
-        frames, model = _phase(sequence, sourced, model, phase, scale, depth_source, depth_motions)
+        frames, model = _phase(sequence, sourced, model, phase, scale, depth_source)
         frame = training_frame(train, it, rng, config.seed, config.epoch_sampling)
         density = density_schedule(config, extent, model.width, centres, frames.K[0, 0])
         # step: the scene's Adam step on the frame's re-blurred render
@@ -153,7 +146,8 @@ def run_deblur(
                             {"history": history, "rng": rng.bit_generator.state})
     seconds = (time.perf_counter() - t0) / max(config.iterations - first, 1)
 
-    frames, model = _phase(sequence, sourced, model, phase, config.resolution_scale, depth_source, depth_motions)
+    frames, model = _phase(sequence, sourced, model, phase, config.resolution_scale, depth_source)
+    depth_moments = DepthMoments(velocity_twists(poses, sequence.timestamps), sequence.depth_offsets())
     for frame in test:
         if config.test_fit_from_neighbours:
             exposures.start_from_neighbours(frame, train)
