@@ -43,6 +43,14 @@ def scale_error(source: np.ndarray, target: np.ndarray, scale: float, translatio
     return float(np.sqrt((residual ** 2).sum() / (3 * n - 4) / spread)) if spread > 0 else float("inf")
 
 
+def scaled_twists(twists: np.ndarray, scale: float) -> np.ndarray:
+    """Twists ``[rho, phi]`` (..., 6) in a world scaled by ``scale``: their translations scale, their rotations
+    do not (a camera frame's offsets, start and end or [ours] bend, move with the scene)."""
+    scaled = np.array(twists, dtype=np.float64, copy=True)
+    scaled[..., :3] *= scale
+    return scaled
+
+
 def back_to_stage_2s_frame(splats: Splats, poses: np.ndarray, offsets: np.ndarray, train: list[int],
                            max_scale_error: float) -> tuple[Splats, np.ndarray, np.ndarray, FrameShift]:
     """``(splats, poses, offsets)`` moved by the scale and translation that best map the ``train`` frames'
@@ -61,8 +69,7 @@ def back_to_stage_2s_frame(splats: Splats, poses: np.ndarray, offsets: np.ndarra
         scale, translation = fit_scale_translation(mids, target, with_scale=False)
     moved_poses = poses.copy()
     moved_poses[:, :3, 3] = scale * poses[:, :3, 3] + translation
-    moved_offsets = offsets.copy()
-    moved_offsets[..., :3] *= scale
+    moved_offsets = scaled_twists(offsets, scale)
     moved = replace(splats, means=(scale * splats.means + translation).astype(splats.means.dtype),
                     log_scales=(splats.log_scales + np.log(scale)).astype(splats.log_scales.dtype))
     return moved, moved_poses, moved_offsets, FrameShift(scale, translation, error)

@@ -59,7 +59,7 @@ from .frames import (
     training_frame,
     with_sh_degree,
 )
-from .gauge import back_to_stage_2s_frame
+from .gauge import back_to_stage_2s_frame, scaled_twists
 from .model import (
     BlurScene,
     BlurStep,
@@ -159,7 +159,7 @@ def run_deblur(
     if config.keep_frame:
         splats, exposures.poses, exposures.offsets, shift = back_to_stage_2s_frame(
             splats, poses, exposures.offsets, train, config.keep_frame_scale_error)
-        exposures.bends[:, :3] *= shift.scale  # a twist's translation scales with the world, as the offsets' do
+        exposures.bends = scaled_twists(exposures.bends, shift.scale)
     result = DeblurResult(
         mid_poses=np.stack(exposures.mid_poses()), exposure=exposures.ends(),
         train=train, test=test, loss_history=history, gaussians=model.count, seconds_per_iteration=seconds,
@@ -314,8 +314,7 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
     With ``test_fit_lambda_depth``, the frame's depth pins the pose it shows (``depth_moments``; None:
     mid-exposure's). Returns (offsets, colour transform, bend)."""
     exposure_fit, bend_fit, colour_fit = _test_fit_steps(config)
-    colour, bend = IDENTITY.copy(), np.zeros(6)
-    fitted_bend = bend if config.test_fit_bend > 0 else None
+    colour, bend = IDENTITY.copy(), np.zeros(6)  # the bend stays straight unless test_fit_bend fits it
     frozen = None
     if config.warp_views and config.test_fit_refresh_px > 0:
         frozen = FrozenAnchors(config.test_fit_refresh_px, frames.K[0, 0], frames.median_depth[frame])
@@ -326,21 +325,21 @@ def _refine_test_exposure(model: BlurScene, frames: _Frames, base: np.ndarray, d
         step = model.step(frames.colors[frame], frames.depths[frame], base, d[0], d[1], k,
                           config.lambda_dssim, 0.0, rates=None, colour=colour if config.colour_affine else None,
                           anchors=anchors, fallback_depth=frames.median_depth[frame], frozen=frozen,
-                          readout_motion=readout_motion, bend=fitted_bend)
+                          readout_motion=readout_motion, bend=bend)
         loss, grad, grad_bend = sum(step.losses.values()), np.stack([step.grad_start, step.grad_end]), step.grad_bend
         if config.test_fit_lambda_depth > 0:
             depth_loss, g_start, g_end, g_bend = model.depth_instant_step(
-                frames.depths[frame], base, d[0], d[1], shift, config.test_fit_lambda_depth, fitted_bend)
+                frames.depths[frame], base, d[0], d[1], shift, config.test_fit_lambda_depth, bend)
             loss, grad, grad_bend = loss + depth_loss, grad + np.stack([g_start, g_end]), grad_bend + g_bend
         guard.check_step(it, loss, grad)
         d = shrink_mid(exposure_fit(d, grad), config.mid_exposure_decay)
         d = keep_open(d, fallback, config.min_open_px, frames.K[0, 0], frames.median_depth[frame])
-        if fitted_bend is not None:
-            fitted_bend = capped_bend(bend_fit(fitted_bend, grad_bend), d, config.test_fit_bend, frames.K[0, 0],
-                                      frames.median_depth[frame])
+        if config.test_fit_bend > 0:
+            bend = capped_bend(bend_fit(bend, grad_bend), d, config.test_fit_bend, frames.K[0, 0],
+                               frames.median_depth[frame])
         if config.colour_affine:
             colour = colour_fit(colour, step.grad_colour)
-    return d, colour, bend if fitted_bend is None else fitted_bend
+    return d, colour, bend
 
 
 def _run_stage(context: StageContext) -> StageRun:
